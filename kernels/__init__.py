@@ -1,0 +1,1 @@
+"""OpenCL C sources of qr-cl, shipped as package data (read with importlib.resources)."""
