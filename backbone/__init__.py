@@ -1,0 +1,46 @@
+"""GS-Net's 3D network in plain PyTorch: Gaussian voxelization, a sparse voxel UNet, GSNet."""
+
+from backbone.conv import (
+    DownsampleConv3d,
+    SparseBatchNorm,
+    SparseLinear,
+    SparseReLU,
+    SubmanifoldConv3d,
+    UpsampleConv3d,
+    sparse_conv,
+)
+from backbone.gaussians import SH_C0, GaussianSet, quat_to_rotmat, rgb_from_sh_dc
+from backbone.gsnet import GSNet
+from backbone.sparse import KernelMap, KernelMapCache, SparseTensor, kernel_offsets, pack_keys, unpack_keys
+from backbone.unet import BasicBlock, SparseUNet, UNetConfig, minkunet14, minkunet18
+from backbone.voxelize import VoxelBatch, VoxelConfig, devoxelize, voxelize
+
+__all__ = [
+    "SH_C0",
+    "BasicBlock",
+    "DownsampleConv3d",
+    "GSNet",
+    "GaussianSet",
+    "KernelMap",
+    "KernelMapCache",
+    "SparseBatchNorm",
+    "SparseLinear",
+    "SparseReLU",
+    "SparseTensor",
+    "SparseUNet",
+    "SubmanifoldConv3d",
+    "UNetConfig",
+    "UpsampleConv3d",
+    "VoxelBatch",
+    "VoxelConfig",
+    "devoxelize",
+    "kernel_offsets",
+    "minkunet14",
+    "minkunet18",
+    "pack_keys",
+    "quat_to_rotmat",
+    "rgb_from_sh_dc",
+    "sparse_conv",
+    "unpack_keys",
+    "voxelize",
+]

@@ -1,0 +1,67 @@
+"""GS-Net's 3D network: Gaussians -> voxels -> sparse UNet -> Gaussians -> C-dim unit features."""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from backbone.gaussians import GaussianSet
+from backbone.sparse import SparseTensor
+from backbone.unet import SparseUNet, UNetConfig, minkunet14
+from backbone.voxelize import Reduce, VoxelBatch, VoxelConfig, devoxelize, voxelize
+
+
+class GSNet(nn.Module):
+    """Predict one L2-normalized ``feature_dim`` vector per Gaussian.
+
+    ``voxelize -> SparseUNet -> de-voxelize (max or mean) -> linear head -> L2-normalize``.
+    The head is applied per voxel before de-voxelizing when that gives the same result (``mean``
+    reduction, or one sample per Gaussian), which is cheaper when voxels are fewer than Gaussians.
+
+    ``unet_config`` defaults to MinkUNet14 with ``voxel_config.num_features`` input channels.
+    """
+
+    def __init__(
+        self,
+        feature_dim: int = 512,
+        voxel_config: VoxelConfig = VoxelConfig(),
+        unet_config: UNetConfig | None = None,
+        reduce: Reduce = "max",
+    ) -> None:
+        super().__init__()
+        if feature_dim < 1:
+            raise ValueError(f"feature_dim must be >= 1, got {feature_dim}")
+        if reduce not in ("max", "mean"):
+            raise ValueError(f"reduce must be 'max' or 'mean', got {reduce!r}")
+        unet_config = unet_config if unet_config is not None else minkunet14(voxel_config.num_features)
+        if unet_config.in_channels != voxel_config.num_features:
+            raise ValueError(
+                f"unet_config.in_channels is {unet_config.in_channels} but the voxel config "
+                f"makes {voxel_config.num_features} features"
+            )
+        self.feature_dim = feature_dim
+        self.voxel_config = voxel_config
+        self.reduce = reduce
+        self.unet = SparseUNet(unet_config)
+        self.head = nn.Linear(unet_config.out_channels, feature_dim)
+
+    def prepare(self, scenes: GaussianSet | Sequence[GaussianSet]) -> VoxelBatch:
+        """Voxelize scenes with this network's voxel config.
+
+        The result depends on the (frozen) Gaussians only: keep it across training steps, and its
+        kernel maps, built by the first forward, are reused.
+        """
+        return voxelize([scenes] if isinstance(scenes, GaussianSet) else scenes, self.voxel_config)
+
+    def forward(self, batch: VoxelBatch) -> Tensor:
+        """Features ``[N, feature_dim]`` with unit L2 norm, rows in the order of the batch's Gaussians."""
+        if batch.grid_size != self.voxel_config.grid_size or batch.feats.shape[1] != self.voxel_config.num_features:
+            raise ValueError("the VoxelBatch was not made with this network's voxel config: use GSNet.prepare")
+        voxels = self.unet(SparseTensor(batch.coords, batch.feats, 1, batch.cache)).feats
+        if self.reduce == "mean" or batch.one_sample_per_gaussian:
+            feats = devoxelize(self.head(voxels), batch, self.reduce)
+        else:
+            feats = self.head(devoxelize(voxels, batch, self.reduce))
+        return F.normalize(feats, dim=1)
