@@ -1,0 +1,161 @@
+"""Sparse convolutions of backbone.conv against torch.nn.functional.conv3d on dense grids."""
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from backbone.conv import (
+    DownsampleConv3d,
+    SparseBatchNorm,
+    SubmanifoldConv3d,
+    UpsampleConv3d,
+    sparse_conv,
+)
+from backbone.sparse import SparseTensor
+
+GRID = 8
+BATCH = 2
+
+
+def random_sparse(channels: int, occupancy: float, seed: int) -> SparseTensor:
+    """Random occupancy of a [BATCH, GRID^3] grid, rows shuffled, float64 features needing grad."""
+    g = torch.Generator().manual_seed(seed)
+    coords = torch.nonzero(torch.rand(BATCH, GRID, GRID, GRID, generator=g) < occupancy)
+    coords = coords[torch.randperm(coords.shape[0], generator=g)]
+    feats = torch.randn(coords.shape[0], channels, generator=g, dtype=torch.float64)
+    return SparseTensor(coords, feats.requires_grad_())
+
+
+def to_dense(coords: torch.Tensor, feats: torch.Tensor, size: int, step: int = 1) -> torch.Tensor:
+    dense = feats.new_zeros(BATCH, size, size, size, feats.shape[1])
+    c = coords[:, 1:] // step
+    return dense.index_put((coords[:, 0], c[:, 0], c[:, 1], c[:, 2]), feats).permute(0, 4, 1, 2, 3)
+
+
+def at_sites(dense: torch.Tensor, coords: torch.Tensor, step: int = 1) -> torch.Tensor:
+    c = coords[:, 1:] // step
+    return dense[coords[:, 0], :, c[:, 0], c[:, 1], c[:, 2]]
+
+
+def compare(sparse_out, dense_out, inputs, seed):
+    """Forward values and the gradients of a random linear loss of both outputs w.r.t. inputs."""
+    g = torch.Generator().manual_seed(seed)
+    probe = torch.randn(sparse_out.shape, generator=g, dtype=sparse_out.dtype)
+    torch.testing.assert_close(sparse_out, dense_out, rtol=1e-10, atol=1e-10)
+    grads_sparse = torch.autograd.grad((sparse_out * probe).sum(), inputs)
+    grads_dense = torch.autograd.grad((dense_out * probe).sum(), inputs)
+    assert all(gs.abs().sum() > 0 for gs in grads_sparse)
+    for gs, gd in zip(grads_sparse, grads_dense):
+        torch.testing.assert_close(gs, gd, rtol=1e-10, atol=1e-10)
+
+
+@pytest.mark.parametrize("kernel_size", [3, 5])
+def test_submanifold_equals_dense_conv3d(kernel_size):
+    torch.manual_seed(0)
+    x = random_sparse(3, 0.3, seed=kernel_size)
+    conv = SubmanifoldConv3d(3, 4, kernel_size, bias=True).double()
+    y = conv(x)
+    k = kernel_size
+    dense_w = conv.weight.reshape(k, k, k, 3, 4).permute(4, 3, 0, 1, 2)
+    ref = F.conv3d(to_dense(x.coords, x.feats, GRID), dense_w, conv.bias, padding=k // 2)
+    assert torch.equal(y.coords, x.coords)
+    compare(y.feats, at_sites(ref, x.coords), (x.feats, conv.weight, conv.bias), seed=1)
+
+
+def test_downsample_equals_dense_strided_conv3d():
+    torch.manual_seed(0)
+    x = random_sparse(3, 0.2, seed=7)
+    conv = DownsampleConv3d(3, 5).double()
+    y = conv(x)
+    dense_w = conv.weight.reshape(2, 2, 2, 3, 5).permute(4, 3, 0, 1, 2)
+    ref = F.conv3d(to_dense(x.coords, x.feats, GRID), dense_w, stride=2)
+    occupied = to_dense(x.coords, torch.ones(len(x), 1, dtype=torch.float64), GRID)
+    parents = F.max_pool3d(occupied, 2).sum()
+    assert y.stride == 2 and len(y) == int(parents)
+    assert bool((y.coords[:, 1:] % 2 == 0).all())
+    compare(y.feats, at_sites(ref, y.coords, 2), (x.feats, conv.weight), seed=2)
+
+
+def test_upsample_equals_dense_conv_transpose3d_on_finer_sites():
+    torch.manual_seed(0)
+    x = random_sparse(3, 0.25, seed=11)
+    coarse = DownsampleConv3d(3, 4).double()(x)
+    z = coarse.with_feats(coarse.feats.detach().requires_grad_())
+    up = UpsampleConv3d(4, 2).double()
+    y = up(z)
+    assert y.stride == 1 and torch.equal(y.coords, x.coords)
+    dense_w = up.weight.reshape(2, 2, 2, 4, 2).permute(3, 4, 0, 1, 2)
+    ref = F.conv_transpose3d(to_dense(z.coords, z.feats, GRID // 2, step=2), dense_w, stride=2)
+    compare(y.feats, at_sites(ref, x.coords), (z.feats, up.weight), seed=3)
+
+
+def test_gradcheck_of_sparse_conv():
+    x = random_sparse(2, 0.15, seed=5)
+    w = torch.randn(27, 2, 3, dtype=torch.float64, requires_grad=True)
+    kmap = x.cache.submanifold(1, 3)
+    assert torch.autograd.gradcheck(lambda f, w: sparse_conv(f, w, kmap), (x.feats, w))
+    down = x.cache.downsample(1)
+    w8 = torch.randn(8, 2, 3, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda f, w: sparse_conv(f, w, down), (x.feats, w8))
+
+
+@pytest.mark.parametrize("shift", [(0, 0, 0), (5, -3, 1), (-1000, 24, 7)])
+def test_translation_equivariance(shift):
+    torch.manual_seed(0)
+    x = random_sparse(3, 0.3, seed=13)
+    conv = SubmanifoldConv3d(3, 4).double()
+    moved = x.coords.clone()
+    moved[:, 1:] += torch.tensor(shift)
+    y0 = conv(x).feats
+    y1 = conv(SparseTensor(moved, x.feats)).feats
+    torch.testing.assert_close(y0, y1, rtol=1e-12, atol=1e-12)
+    if all(s % 2 == 0 for s in shift):
+        down = DownsampleConv3d(3, 4).double()
+        torch.testing.assert_close(down(x).feats, down(SparseTensor(moved, x.feats)).feats, rtol=1e-12, atol=1e-12)
+
+
+def test_scenes_in_a_batch_do_not_mix():
+    torch.manual_seed(0)
+    x = random_sparse(3, 0.3, seed=17)
+    conv = SubmanifoldConv3d(3, 4).double()
+    y = conv(x).feats
+    for b in range(BATCH):
+        rows = torch.nonzero(x.coords[:, 0] == b).squeeze(1)
+        alone = x.coords[rows].clone()
+        alone[:, 0] = 0
+        torch.testing.assert_close(conv(SparseTensor(alone, x.feats[rows])).feats, y[rows], rtol=1e-12, atol=1e-12)
+
+
+def test_empty_input():
+    x = SparseTensor(torch.zeros(0, 4, dtype=torch.int64), torch.zeros(0, 3, requires_grad=True))
+    sub, down, up = SubmanifoldConv3d(3, 4), DownsampleConv3d(4, 6), UpsampleConv3d(6, 2)
+    y = up(down(sub(x)))
+    assert y.feats.shape == (0, 2) and y.stride == 1
+    y.feats.sum().backward()
+    assert x.feats.grad.shape == (0, 3)
+    assert torch.equal(sub.weight.grad, torch.zeros_like(sub.weight))
+
+
+def test_single_voxel():
+    torch.manual_seed(0)
+    x = SparseTensor(torch.tensor([[0, -3, 4, 5]]), torch.randn(1, 3, dtype=torch.float64))
+    sub = SubmanifoldConv3d(3, 4).double()
+    torch.testing.assert_close(sub(x).feats, x.feats @ sub.weight[13])
+    down = DownsampleConv3d(3, 2).double()
+    y = down(x)
+    assert y.coords.tolist() == [[0, -4, 4, 4]]
+    torch.testing.assert_close(y.feats, x.feats @ down.weight[4 * 1 + 2 * 0 + 1])
+    up = UpsampleConv3d(2, 3).double()
+    assert torch.equal(up(y).coords, x.coords)
+    bn = SparseBatchNorm(3).double().train()
+    out = bn(x).feats
+    torch.testing.assert_close(out, x.feats / (1 + bn.eps) ** 0.5)
+    assert bn.num_batches_tracked.item() == 0
+
+
+def test_bad_weight_shape_is_named():
+    x = random_sparse(3, 0.2, seed=1)
+    with pytest.raises(ValueError, match="weight"):
+        sparse_conv(x.feats, torch.zeros(27, 2, 4, dtype=torch.float64), x.cache.submanifold(1, 3))
+    with pytest.raises(ValueError, match="odd"):
+        SubmanifoldConv3d(3, 4, kernel_size=4)
