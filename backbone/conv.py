@@ -3,7 +3,8 @@
 A convolution is, for every kernel offset k: gather the input rows of k's pairs, multiply by the
 ``[C_in, C_out]`` weight of k, and ``index_add_`` into the output rows. The backward pass is the
 same operation on the transposed map with transposed weights (no float atomics, no saved
-gathers), and the weight gradient is one ``[C_in, P_k] @ [P_k, C_out]`` product per offset.
+gathers), sharing each offset's gathered output gradient with the weight gradient, one
+``[C_in, P_k] @ [P_k, C_out]`` product per offset.
 
 Weights are stored ``[K, C_in, C_out]`` with offsets ordered like
 :func:`~backbone.sparse.kernel_offsets` (dx, dy, dz lexicographic, dz fastest). The equivalent
@@ -49,18 +50,21 @@ class _SparseConvFunction(torch.autograd.Function):
         feats, weight = ctx.saved_tensors
         kmap: KernelMap = ctx.kmap
         grad_out = grad_out.contiguous()
-        grad_feats = grad_weight = None
-        if ctx.needs_input_grad[0]:
-            grad_feats = _apply_map(
-                grad_out, weight.transpose(1, 2), kmap.out_idx, kmap.in_idx, kmap.identity, kmap.n_in
-            )
-        if ctx.needs_input_grad[1]:
-            grad_weight = torch.zeros_like(weight)
-            for k, (src, dst) in enumerate(zip(kmap.in_idx, kmap.out_idx)):
-                if k == kmap.identity:
+        need_feats, need_weight = ctx.needs_input_grad[:2]
+        grad_feats = feats.new_zeros(kmap.n_in, feats.shape[1]) if need_feats else None
+        grad_weight = torch.zeros_like(weight) if need_weight else None
+        for k, (src, dst) in enumerate(zip(kmap.in_idx, kmap.out_idx)):
+            if k == kmap.identity:
+                if need_feats:
+                    grad_feats.add_(grad_out @ weight[k].t())
+                if need_weight:
                     torch.mm(feats.t(), grad_out, out=grad_weight[k])
-                elif src.numel():
-                    torch.mm(feats.index_select(0, src).t(), grad_out.index_select(0, dst), out=grad_weight[k])
+            elif src.numel():
+                g = grad_out.index_select(0, dst)
+                if need_feats:
+                    grad_feats.index_add_(0, src, g @ weight[k].t())
+                if need_weight:
+                    torch.mm(feats.index_select(0, src).t(), g, out=grad_weight[k])
         return grad_feats, grad_weight, None
 
 
