@@ -57,6 +57,8 @@ class GSNet(nn.Module):
 
     def forward(self, batch: VoxelBatch) -> Tensor:
         """Features ``[N, feature_dim]`` with unit L2 norm, rows in the order of the batch's Gaussians."""
+        if not isinstance(batch, VoxelBatch):
+            raise TypeError(f"GSNet takes a VoxelBatch (from GSNet.prepare), got {type(batch).__name__}")
         if batch.grid_size != self.voxel_config.grid_size or batch.feats.shape[1] != self.voxel_config.num_features:
             raise ValueError("the VoxelBatch was not made with this network's voxel config: use GSNet.prepare")
         voxels = self.unet(SparseTensor(batch.coords, batch.feats, 1, batch.cache)).feats

@@ -155,6 +155,10 @@ class KernelMapCache:
                 raise ValueError("coords contain duplicate (batch, x, y, z) rows")
         self._levels[stride] = _Level(coords, keys, order)
 
+    def __len__(self) -> int:
+        """Number of kernel maps built so far."""
+        return len(self._maps)
+
     def coords(self, stride: int) -> Tensor:
         """Coordinates ``[M, 4]`` int64 of a registered stride level."""
         if stride not in self._levels:

@@ -154,6 +154,8 @@ class SparseUNet(nn.Module):
             raise ValueError(f"SparseUNet expects a stride-1 input, got stride {x.stride}")
         if x.feats.shape[1] != self.config.in_channels:
             raise ValueError(f"expected {self.config.in_channels} input channels, got {x.feats.shape[1]}")
+        if not bool(torch.isfinite(x.feats).all()):
+            raise ValueError("SparseUNet input feats contain NaN or infinite values")
         x = self.stem(x)
         skips = [x]
         for down, enc in zip(self.down, self.enc):

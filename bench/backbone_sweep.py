@@ -17,6 +17,7 @@ import math
 import resource
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Callable
@@ -138,21 +139,40 @@ def best_of(fn: Callable[[], None], rounds: int) -> float:
     return min(times)
 
 
-def peak_memory(voxels: int) -> dict:
-    """Peak RSS of a fresh process doing one MinkUNet14 forward+backward on ``voxels`` voxels (MiB)."""
-    cmd = [sys.executable, str(Path(__file__).resolve()), "memory-child", "--voxels", str(voxels)]
-    out = subprocess.run(cmd, check=True, capture_output=True, text=True)
+def peak_memory(coords: torch.Tensor) -> dict:
+    """Peak RSS (MiB) of a fresh process doing one MinkUNet14 forward+backward on ``coords`` ``[M, 4]``.
+
+    The coordinates travel through a temporary file so that generating them does not raise the
+    child's high-water mark; ``step_peak_mib`` is the peak minus the RSS after loading them and
+    building the model.
+    """
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "coords.pt"
+        torch.save(coords, path)
+        cmd = [sys.executable, str(Path(__file__).resolve()), "memory-child", "--coords", str(path)]
+        out = subprocess.run(cmd, check=True, capture_output=True, text=True)
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-def _memory_child(voxels: int) -> None:
-    coords = room_voxels(voxels)
+def _high_water_mib() -> float:
+    """This process's peak RSS in MiB: VmHWM (reset by exec, unlike ru_maxrss, which a child
+    inherits from the parent it was forked from), or ru_maxrss where /proc is missing."""
+    status = Path("/proc/self/status")
+    if status.exists():
+        for line in status.read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def _memory_child(path: str) -> None:
+    coords = torch.load(path)
     unet = SparseUNet(minkunet14(UNET_IN_CHANNELS))
     step = unet_step(coords, unet, None)
-    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    before = _high_water_mib()
     step()
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    print(json.dumps({"voxels": voxels, "rss_before_mib": round(before, 1), "peak_rss_mib": round(peak, 1),
+    peak = _high_water_mib()
+    print(json.dumps({"voxels": coords.shape[0], "rss_before_mib": round(before, 1), "peak_rss_mib": round(peak, 1),
                       "step_peak_mib": round(peak - before, 1)}))
 
 
@@ -162,12 +182,14 @@ def main() -> None:
     parser.add_argument("--voxels", type=int, nargs="+", default=[20000, 100000])
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--channels", type=int, nargs=2, action="append", help="conv C_in C_out (repeatable)")
+    parser.add_argument("--coords", help="memory-child: file of coordinates written by peak_memory")
     args = parser.parse_args()
+    if args.what == "memory-child":
+        _memory_child(args.coords)
+        return
     for n in args.voxels:
-        if args.what == "memory-child":
-            _memory_child(n)
-        elif args.what == "memory":
-            print(json.dumps(peak_memory(n)))
+        if args.what == "memory":
+            print(json.dumps(peak_memory(room_voxels(n))))
         elif args.what == "unet":
             coords = room_voxels(n)
             unet = SparseUNet(minkunet14(UNET_IN_CHANNELS))

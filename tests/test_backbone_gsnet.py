@@ -107,10 +107,12 @@ def test_kernel_maps_are_built_once_per_batch():
     batch = net.prepare(random_gaussians(300, 6))
     with torch.no_grad():
         first = net(batch)
-        maps = dict(batch.cache._maps)
+        built = len(batch.cache)
+        stem_map, down_map = batch.cache.submanifold(1, 3), batch.cache.downsample(1)
         second = net(batch)
-    assert len(maps) == 3 + 3 + 1
-    assert all(batch.cache._maps[k] is v for k, v in maps.items()) and len(batch.cache._maps) == len(maps)
+    assert built == 3 + 3 + 1
+    assert len(batch.cache) == built
+    assert batch.cache.submanifold(1, 3) is stem_map and batch.cache.downsample(1) is down_map
     torch.testing.assert_close(first, second, rtol=0, atol=0)
 
 
@@ -134,6 +136,19 @@ def test_mismatched_configs_are_rejected():
         net(other.prepare(random_gaussians(10, 8)))
     with pytest.raises(ValueError, match="reduce"):
         GSNet(8, reduce="sum")
+    with pytest.raises(TypeError, match="prepare"):
+        net(random_gaussians(10, 9))
+
+
+def test_unet_rejects_nan_and_wrong_widths():
+    unet = SparseUNet(minkunet14(5, **SMALL))
+    coords = surface_voxels(2)
+    feats = torch.zeros(coords.shape[0], 5)
+    feats[3, 1] = float("nan")
+    with pytest.raises(ValueError, match="NaN"):
+        unet(SparseTensor(coords, feats))
+    with pytest.raises(ValueError, match="5 input channels"):
+        unet(SparseTensor(coords, torch.zeros(coords.shape[0], 4)))
 
 
 def three_clusters(n: int, seed: int) -> tuple[GaussianSet, torch.Tensor]:
