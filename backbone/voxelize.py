@@ -33,6 +33,8 @@ class VoxelConfig:
     - ``sample_shape``: ``center`` (one voxel per Gaussian) or ``volume`` (its 3-sigma box).
     - ``max_extent``: volume sampling keeps at most this many voxels on each side of the voxel
       holding the mean, per axis (bounds the cost of huge Gaussians).
+    - ``max_samples``: volume sampling raises ValueError, before allocating, when one scene would
+      make more samples than this (each costs a few hundred bytes of temporaries).
     - ``use_scale`` / ``use_rotation``: append ``log(scale / grid_size)`` (3) and the quaternion
       with ``w >= 0`` (4) to the voxel features.
     - ``sh_rest_coeffs``: number of SH coefficients beyond DC to append (x3 channels), e.g. 3 for
@@ -41,7 +43,8 @@ class VoxelConfig:
 
     grid_size: float = 0.05
     sample_shape: SampleShape = "center"
-    max_extent: int = 8
+    max_extent: int = 4
+    max_samples: int = 10_000_000
     use_scale: bool = False
     use_rotation: bool = False
     sh_rest_coeffs: int = 0
@@ -53,6 +56,8 @@ class VoxelConfig:
             raise ValueError(f"sample_shape must be 'center' or 'volume', got {self.sample_shape!r}")
         if self.max_extent < 0:
             raise ValueError(f"max_extent must be >= 0, got {self.max_extent}")
+        if self.max_samples < 1:
+            raise ValueError(f"max_samples must be >= 1, got {self.max_samples}")
         if self.sh_rest_coeffs < 0:
             raise ValueError(f"sh_rest_coeffs must be >= 0, got {self.sh_rest_coeffs}")
 
@@ -114,6 +119,12 @@ def _samples(g: GaussianSet, config: VoxelConfig) -> tuple[Tensor, Tensor, Tenso
     hi = torch.minimum(torch.floor((means + reach) / grid).to(torch.int64), home + config.max_extent)
     extent = hi - lo + 1
     counts = extent.prod(dim=1)
+    total = int(counts.sum())
+    if total > config.max_samples:
+        raise ValueError(
+            f"volume sampling would make {total} samples for {n} Gaussians (max_samples={config.max_samples}): "
+            "use a larger grid_size, a smaller max_extent, or raise max_samples"
+        )
     gid = torch.repeat_interleave(torch.arange(n), counts)
     first = torch.cumsum(counts, 0) - counts
     local = torch.arange(gid.shape[0]) - first[gid]

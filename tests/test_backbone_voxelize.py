@@ -88,7 +88,7 @@ def test_volume_opacity_uses_the_mahalanobis_distance_of_a_rotated_gaussian():
     quat = torch.nn.functional.normalize(torch.tensor([0.9, 0.3, -0.2, 0.4]), dim=0)
     scale = torch.tensor([0.12, 0.04, 0.02])
     g = one_gaussian([0.5, 0.5, 0.5], scale.tolist(), quat=quat.tolist(), opacity=0.6)
-    batch = voxelize([g], VoxelConfig(grid_size=0.05, sample_shape="volume"))
+    batch = voxelize([g], VoxelConfig(grid_size=0.05, sample_shape="volume", max_extent=10))
     r = quat_to_rotmat(quat[None])[0]
     cov = r @ torch.diag(scale**2) @ r.T
     sig = torch.sqrt(torch.diag(cov))
@@ -100,11 +100,13 @@ def test_volume_opacity_uses_the_mahalanobis_distance_of_a_rotated_gaussian():
     torch.testing.assert_close(batch.feats[:, 6], (0.6 * torch.exp(-0.5 * maha2)).float(), rtol=1e-4, atol=1e-6)
 
 
-def test_volume_extent_is_capped():
+def test_volume_extent_and_sample_count_are_capped():
     g = one_gaussian([0.0, 0.05, 0.05], [5.0, 0.001, 0.001])
     batch = voxelize([g], VoxelConfig(grid_size=0.1, sample_shape="volume", max_extent=2))
     assert int(batch.samples_per_gaussian[0]) == 5
     assert batch.coords[:, 1].tolist() == [0, 1, 2, 3, 4]
+    with pytest.raises(ValueError, match="would make 5 samples"):
+        voxelize([g], VoxelConfig(grid_size=0.1, sample_shape="volume", max_extent=2, max_samples=4))
 
 
 @pytest.mark.parametrize("reduce", ["max", "mean"])
