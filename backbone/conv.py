@@ -15,6 +15,7 @@ dense weight is ``weight.reshape(k, k, k, C_in, C_out).permute(4, 3, 0, 1, 2)`` 
 from __future__ import annotations
 
 import math
+from typing import Sequence
 
 import torch
 import torch.nn.functional as F
@@ -24,7 +25,9 @@ from torch.autograd.function import once_differentiable
 from backbone.sparse import KernelMap, SparseTensor
 
 
-def _apply_map(feats: Tensor, weight: Tensor, in_idx, out_idx, identity: int | None, n_out: int) -> Tensor:
+def _apply_map(
+    feats: Tensor, weight: Tensor, in_idx: Sequence[Tensor], out_idx: Sequence[Tensor], identity: int | None, n_out: int
+) -> Tensor:
     """Sum over offsets k of ``feats[in_idx[k]] @ weight[k]`` added into rows ``out_idx[k]`` of ``[n_out, C_out]``."""
     if identity is not None:
         out = feats @ weight[identity]
