@@ -7,7 +7,8 @@ Full sizes (20k and 100k occupied voxels of a synthetic room):
 Without ``--benchmark-only`` (or with ``BACKBONE_BENCH_SMOKE=1``) the same tests run once on tiny
 voxel sets as a smoke test (a few seconds). ``BACKBONE_BENCH_FULL=1`` forces full sizes.
 The spconv rows are skipped when spconv is not installed; its CPU build is a peer reference only
-(``spconv_max_abs_diff`` in extra_info records how far its output is from ours).
+(``spconv_max_abs_diff`` in extra_info records how far its output is from ours: spconv 2.3.8's CPU
+build gave wrong rows with more than one OpenMP thread here, and matched dense conv3d with one).
 """
 
 from __future__ import annotations
@@ -16,6 +17,8 @@ import os
 
 import pytest
 import torch
+
+from backbone import KernelMapCache, SparseUNet, minkunet14
 from backbone_sweep import (
     UNET_IN_CHANNELS,
     ours_conv_step,
@@ -25,8 +28,6 @@ from backbone_sweep import (
     spconv_conv_step,
     unet_step,
 )
-
-from backbone import KernelMapCache, SparseUNet, minkunet14
 
 FULL_SIZES = {"20k": 20_000, "100k": 100_000}
 SMOKE_SIZES = {"20k": 1_000, "100k": 2_000}
