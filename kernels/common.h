@@ -1,0 +1,47 @@
+/* Shared math of the qr-cl kernels: 3DGS conventions (see NOTES.md / the original 3DGS). */
+#ifndef QR_CL_COMMON_H
+#define QR_CL_COMMON_H
+
+#define TILE 16                      /* tiles are TILE x TILE pixels */
+#define ALPHA_MIN (1.0f / 255.0f)    /* Gaussians with a smaller alpha are skipped */
+#define ALPHA_MAX 0.99f              /* alpha is clamped here */
+#define T_MIN 1e-4f                  /* V-Render stops before T would drop to this */
+
+/* Rotation matrix (row-major, 9 floats) of a unit quaternion q = (w, x, y, z). */
+inline void quat_to_rotmat(float4 q, float *r) {
+    float w = q.x, x = q.y, y = q.z, z = q.w;
+    r[0] = 1.f - 2.f * (y * y + z * z); r[1] = 2.f * (x * y - w * z); r[2] = 2.f * (x * z + w * y);
+    r[3] = 2.f * (x * y + w * z); r[4] = 1.f - 2.f * (x * x + z * z); r[5] = 2.f * (y * z - w * x);
+    r[6] = 2.f * (x * z - w * y); r[7] = 2.f * (y * z + w * x); r[8] = 1.f - 2.f * (x * x + y * y);
+}
+
+/* c = a * b for row-major 3x3 matrices. */
+inline void mat3_mul(const float *a, const float *b, float *c) {
+    for (int i = 0; i < 3; i++)
+        for (int j = 0; j < 3; j++)
+            c[3 * i + j] = a[3 * i] * b[j] + a[3 * i + 1] * b[3 + j] + a[3 * i + 2] * b[6 + j];
+}
+
+/* Gaussian density exponent at offset d = mean2d - pixel: 0.5 (a dx^2 + c dy^2) + b dx dy,
+   with conic (a, b, c) the inverse 2D covariance. */
+inline float splat_sigma(float a, float b, float c, float dx, float dy) {
+    return 0.5f * (a * dx * dx + c * dy * dy) + b * dx * dy;
+}
+
+/* Real spherical-harmonic basis constants (original 3DGS computeColorFromSH). */
+#define SH_C0 0.28209479177387814f
+#define SH_C1 0.4886025119029199f
+#define SH_C2_0 1.0925484305920792f
+#define SH_C2_1 -1.0925484305920792f
+#define SH_C2_2 0.31539156525252005f
+#define SH_C2_3 -1.0925484305920792f
+#define SH_C2_4 0.5462742152960396f
+#define SH_C3_0 -0.5900435899266435f
+#define SH_C3_1 2.890611442640554f
+#define SH_C3_2 -0.4570457994644658f
+#define SH_C3_3 0.3731763325901154f
+#define SH_C3_4 -0.4570457994644658f
+#define SH_C3_5 1.445305721320277f
+#define SH_C3_6 -0.5900435899266435f
+
+#endif

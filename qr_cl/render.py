@@ -1,0 +1,86 @@
+"""The public, gsplat-style entry point: :func:`rasterize`."""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from .device import runtime
+from .raster import rasterize_plan, to_device
+from .vrender import channel_layout, padded_rows, render_fused, sh_colors
+
+SAMPLERS = ("volume",)
+
+
+def _host(x, name: str, shape: tuple) -> np.ndarray:
+    """A float32 numpy view/copy of a tensor or array, with its shape checked (-1 = any)."""
+    a = x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
+    if a.ndim != len(shape) or any(s != -1 and s != d for s, d in zip(shape, a.shape)):
+        raise ValueError(f"{name} has shape {tuple(a.shape)}, expected {tuple('N' if s == -1 else s for s in shape)}")
+    return np.ascontiguousarray(a, np.float32)
+
+
+def rasterize(means, quats, scales, opacities, features, viewmat, K, width: int, height: int,
+              sampler: str = "volume", k: int = 40, sh_degree: int | None = None,
+              near: float = 0.01, far: float = 1e10, background=None):
+    """Render C-dim features (or RGB from SH) of 3D Gaussians for one pinhole camera.
+
+    Args:
+        means [N,3], quats [N,4] unit w,x,y,z, scales [N,3] activated (world units),
+        opacities [N] activated in [0,1]: torch float32 CPU tensors (numpy arrays work too).
+        features: [N,C] per-Gaussian features, C in 1..2048; or, with ``sh_degree`` set,
+            SH coefficients [N,(d+1)^2,3] (d >= sh_degree; the first (sh_degree+1)^2 are used)
+            evaluated per view into RGB.
+        viewmat: [4,4] world-to-camera (OpenCV axes: x right, y down, z forward).
+        K: [3,3] intrinsics in pixels. width, height: image size in pixels.
+        sampler: "volume" (full alpha blending, fused kernel). ``k`` is the sampler's K (unused
+            by "volume").
+        near, far: depth culling planes (camera z, world units).
+        background: [C] colour blended with the remaining transmittance, or None (black).
+
+    Returns:
+        render [H,W,C] float32, alpha [H,W,1] float32 (1 - final transmittance) and a meta dict
+        with means2d [N,2] (px), conics [N,3], depths [N] (camera z), radii [N] int32 (0 = culled),
+        opacities [N], tile_ranges [tiles,2], n_keys, and depth [H,W,1] (expected depth).
+    """
+    if sampler not in SAMPLERS:
+        raise ValueError(f"sampler={sampler!r}: available samplers are {SAMPLERS}")
+    means = _host(means, "means", (-1, 3))
+    n = len(means)
+    quats = _host(quats, "quats", (n, 4))
+    scales = _host(scales, "scales", (n, 3))
+    opacities = _host(opacities, "opacities", (n,))
+    viewmat = _host(viewmat, "viewmat", (4, 4))
+    K = _host(K, "K", (3, 3))
+    if sh_degree is not None:
+        sh = _host(features, "features (SH coefficients)", (n, -1, 3))
+        if sh.shape[1] < (sh_degree + 1) ** 2:
+            raise ValueError(f"sh_degree={sh_degree} needs {(sh_degree + 1) ** 2} coefficients per "
+                             f"Gaussian, features have {sh.shape[1]}")
+        sh = np.ascontiguousarray(sh[:, :(sh_degree + 1) ** 2])
+        channels = 3
+    else:
+        feats = _host(features, "features", (n, -1))
+        channels = feats.shape[1]
+        if not 1 <= channels <= 2048:
+            raise ValueError(f"features have {channels} channels; 1..2048 are supported")
+    if n == 0:
+        bg = np.zeros(channels, np.float32) if background is None else _host(background, "background", (channels,))
+        render = np.broadcast_to(bg, (height, width, channels)).copy()
+        zeros = np.zeros((height, width, 1), np.float32)
+        meta = {"means2d": np.zeros((0, 2), np.float32), "conics": np.zeros((0, 3), np.float32),
+                "depths": np.zeros(0, np.float32), "radii": np.zeros(0, np.int32),
+                "opacities": np.zeros(0, np.float32), "n_keys": 0, "depth": zeros}
+        return torch.from_numpy(render), torch.from_numpy(zeros.copy()), meta
+
+    rt = runtime()
+    plan = rasterize_plan(means, quats, scales, opacities, viewmat, K, width, height, near, far, rt)
+    if sh_degree is not None:
+        campos = -viewmat[:3, :3].T @ viewmat[:3, 3]
+        device_features = sh_colors(rt, to_device(rt, means), sh, campos)
+    else:
+        device_features = to_device(rt, padded_rows(feats, channel_layout(channels)[2]))
+    bg = None if background is None else _host(background, "background", (channels,))
+    image, alpha, depth = render_fused(plan, device_features, channels, bg)
+    meta = plan.meta()
+    meta["depth"] = depth
+    return torch.from_numpy(image), torch.from_numpy(alpha), meta
