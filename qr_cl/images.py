@@ -1,0 +1,32 @@
+"""Writing renders as PNG pictures (RGB, depth with a colour map, alpha in grey)."""
+from __future__ import annotations
+
+import os
+
+import numpy as np
+from matplotlib import colormaps
+from matplotlib.image import imsave
+
+
+def save_rgb(path: str | os.PathLike, image: np.ndarray) -> None:
+    """image [H,W,3] in [0,1] (clipped) -> 8-bit PNG."""
+    imsave(path, np.clip(np.asarray(image, np.float32), 0, 1))
+
+
+def save_alpha(path: str | os.PathLike, alpha: np.ndarray) -> None:
+    """alpha [H,W,1] or [H,W] in [0,1] -> grey PNG."""
+    a = np.clip(np.asarray(alpha, np.float32).reshape(alpha.shape[0], alpha.shape[1]), 0, 1)
+    imsave(path, a, cmap="gray", vmin=0, vmax=1)
+
+
+def save_depth(path: str | os.PathLike, depth: np.ndarray, alpha: np.ndarray) -> None:
+    """Expected depth [H,W,1] -> turbo-coloured PNG (near = red), black where alpha < 0.5;
+    the colour range spans the 1st..99th percentile of the covered pixels."""
+    d = np.asarray(depth, np.float32)[..., 0]
+    covered = np.asarray(alpha, np.float32)[..., 0] >= 0.5
+    rgb = np.zeros(d.shape + (3,), np.float32)
+    if covered.any():
+        lo, hi = np.percentile(d[covered], [1, 99])
+        t = np.clip((d - lo) / max(hi - lo, 1e-12), 0, 1)
+        rgb[covered] = colormaps["turbo"](1 - t[covered])[:, :3]
+    imsave(path, rgb)

@@ -1,0 +1,69 @@
+"""A small procedural scene of Gaussians made in code (the embedded default: no files needed)."""
+from __future__ import annotations
+
+import numpy as np
+
+from .scene import SH_C0, Gaussians
+
+
+def _surface_gaussians(points: np.ndarray, normals: np.ndarray, rgb: np.ndarray, size: float,
+                       rng: np.random.Generator) -> Gaussians:
+    """Flat Gaussians on a surface: the thin axis (z of the local frame) along the normal."""
+    n = len(points)
+    z = np.array([0.0, 0.0, 1.0])
+    axis = np.cross(np.broadcast_to(z, normals.shape), normals)
+    s = np.linalg.norm(axis, axis=1, keepdims=True)
+    c = normals @ z
+    half = np.arctan2(s[:, 0], c) / 2
+    axis = np.where(s > 1e-9, axis / np.maximum(s, 1e-12), np.array([1.0, 0.0, 0.0]))
+    quats = np.concatenate([np.cos(half)[:, None], np.sin(half)[:, None] * axis], 1)
+    scales = np.stack([size * rng.uniform(0.7, 1.3, n), size * rng.uniform(0.7, 1.3, n),
+                       np.full(n, size * 0.1)], 1)
+    colour = np.clip(rgb + rng.normal(0, 0.04, rgb.shape), 0, 1)
+    sh = np.zeros((n, 4, 3))
+    sh[:, 0] = (colour - 0.5) / SH_C0
+    sh[:, 1:] = rng.normal(0, 0.05, (n, 3, 3))  # mild view dependence (degree 1)
+    return Gaussians(points.astype(np.float32), quats.astype(np.float32), scales.astype(np.float32),
+                     rng.uniform(0.8, 0.99, n).astype(np.float32), sh.astype(np.float32))
+
+
+def _concat(parts: list[Gaussians]) -> Gaussians:
+    return Gaussians(*(np.concatenate([getattr(p, f) for p in parts]) for f in
+                       ("means", "quats", "scales", "opacities", "sh")))
+
+
+def procedural_scene(n: int = 20000, seed: int = 0) -> Gaussians:
+    """About ``n`` Gaussians (SH degree 1), z up, within [-1, 1]^2 x [0, 1.2]: a checkered floor,
+    a red sphere, a blue torus and a yellow box. Deterministic for a given seed."""
+    rng = np.random.default_rng(seed)
+    parts = []
+    k = n // 4
+    # floor: a checkerboard on z = 0
+    xy = rng.uniform(-1, 1, (k, 2))
+    checker = ((np.floor(xy[:, 0] * 4) + np.floor(xy[:, 1] * 4)) % 2)[:, None]
+    floor_rgb = 0.25 + 0.5 * checker * np.ones((1, 3))
+    parts.append(_surface_gaussians(np.c_[xy, np.zeros(k)], np.tile([0.0, 0.0, 1.0], (k, 1)),
+                                    floor_rgb, 0.02, rng))
+    # sphere
+    d = rng.normal(size=(k, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    parts.append(_surface_gaussians(np.array([-0.4, -0.3, 0.35]) + 0.3 * d, d,
+                                    np.tile([0.85, 0.15, 0.1], (k, 1)), 0.02, rng))
+    # torus (major radius 0.3, minor 0.1), standing on the floor
+    u, v = rng.uniform(0, 2 * np.pi, (2, k))
+    ring = np.c_[np.cos(u), np.sin(u), np.zeros(k)]
+    normal = np.cos(v)[:, None] * ring + np.sin(v)[:, None] * np.array([0.0, 0.0, 1.0])
+    parts.append(_surface_gaussians(np.array([0.4, 0.3, 0.12]) + 0.3 * ring + 0.1 * normal, normal,
+                                    np.tile([0.1, 0.3, 0.9], (k, 1)), 0.015, rng))
+    # box: points on the six faces of a 0.4 x 0.4 x 0.5 box
+    m = n - 3 * k
+    face = rng.integers(0, 6, m)
+    axis, sign = face // 2, np.where(face % 2, 1.0, -1.0)
+    half = np.array([0.2, 0.2, 0.25])
+    local = rng.uniform(-1, 1, (m, 3)) * half
+    local[np.arange(m), axis] = sign * half[axis]
+    normals = np.zeros((m, 3))
+    normals[np.arange(m), axis] = sign
+    parts.append(_surface_gaussians(np.array([0.45, -0.45, 0.25]) + local, normals,
+                                    np.tile([0.95, 0.8, 0.2], (m, 1)), 0.02, rng))
+    return _concat(parts)
