@@ -44,4 +44,38 @@ inline float splat_sigma(float a, float b, float c, float dx, float dy) {
 #define SH_C3_5 1.445305721320277f
 #define SH_C3_6 -0.5900435899266435f
 
+/* ---- helpers of the selection and blend kernels (select.cl, blend.cl) ---- */
+
+/* Ray gid -> pixel (x, y) and output row p. full != 0: the whole image, rays numbered tile-major
+   (neighbouring work-items share a tile list), p = y * width + x; returns 0 for padding rays
+   outside the image. full == 0: a pixel subset, (x, y) = pixels[gid], p = gid. */
+inline int ray_pixel(int gid, int full, __global const int2 *pixels, int width, int height,
+                     int tiles_x, int *x, int *y, int *p) {
+    if (full) {
+        const int tile = gid / (TILE * TILE), in_tile = gid % (TILE * TILE);
+        *x = (tile % tiles_x) * TILE + in_tile % TILE;
+        *y = (tile / tiles_x) * TILE + in_tile / TILE;
+        *p = *y * width + *x;
+        return *x < width && *y < height;
+    }
+    const int2 xy = pixels[gid];
+    *x = xy.x; *y = xy.y; *p = gid;
+    return 1;
+}
+
+/* The tile of pixel (x, y). */
+inline int pixel_tile(int x, int y, int tiles_x) { return (y / TILE) * tiles_x + x / TILE; }
+
+/* alpha'_i of a splat at pixel centre (px, py): min(0.99, opacity exp(-sigma)), or 0 when the
+   Gaussian is skipped (sigma < 0 or alpha < 1/255). Same expression as vrender.cl. */
+inline float splat_alpha(float8 s, float px, float py) {
+    const float sig = splat_sigma(s.s2, s.s3, s.s4, s.s0 - px, s.s1 - py);
+    if (sig < 0.f) return 0.f;
+    const float a = min(ALPHA_MAX, s.s5 * exp(-sig));
+    return a < ALPHA_MIN ? 0.f : a;
+}
+
+/* The (k+1)-th of the K equal transmittance boundaries of Q-Render: 1 - (k+1)/(K+1). */
+inline float quantile_boundary(int k, int K) { return 1.f - (float)(k + 1) / (float)(K + 1); }
+
 #endif
