@@ -49,11 +49,13 @@ class RasterPlan:
 
     def meta(self) -> dict[str, np.ndarray]:
         """Host copies: means2d [N,2] px, conics [N,3], depths [N], radii [N] int32, opacities [N],
-        tile_ranges [tiles,2], n_keys."""
+        tile_ranges [tiles,2] [start, end) into flatten_ids [M] (depth-sorted Gaussian ids per
+        tile, as gsplat names them), n_keys = M."""
         s = self.splats.get().reshape(-1, 8)
         return {"means2d": s[:, 0:2].copy(), "conics": s[:, 2:5].copy(), "opacities": s[:, 5].copy(),
                 "depths": s[:, 6].copy(), "radii": self.radii.get(),
-                "tile_ranges": self.ranges.get().reshape(-1, 2), "n_keys": self.n_keys}
+                "tile_ranges": self.ranges.get().reshape(-1, 2),
+                "flatten_ids": self.ids.get()[:self.n_keys], "n_keys": self.n_keys}
 
 
 @lru_cache(maxsize=None)

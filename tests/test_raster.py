@@ -1,0 +1,165 @@
+"""Kernels vs the numpy reference: projection, binning, V-Render, SH colours."""
+import numpy as np
+import pytest
+import torch
+
+import qr_cl
+from qr_cl import reference as ref
+from qr_cl.camera import look_at, orbit_cameras
+from qr_cl.device import runtime
+from qr_cl.raster import rasterize_plan, to_device
+from qr_cl.scene import Gaussians
+from qr_cl.vrender import sh_colors
+
+W, H = 96, 72
+
+
+def hostile_scene(n=600, seed=0, degree=0) -> Gaussians:
+    """Random Gaussians in front of a camera at the origin looking down +z, plus edge cases:
+    behind the camera, at the near plane, huge (covering the image) and tiny ones."""
+    rng = np.random.default_rng(seed)
+    means = np.c_[rng.uniform(-2, 2, (n, 2)), rng.uniform(1, 6, n)]
+    scales = np.exp(rng.uniform(-4, -1, (n, 3)))
+    means[:20, 2] = -rng.uniform(0.1, 3, 20)                 # behind the camera
+    means[20:30, 2] = 0.01 + rng.choice([-1, 1], 10) * 2e-4  # straddling the near plane (0.01)
+    means[20:30, :2] *= 0.005
+    scales[30:35] = rng.uniform(3, 10, (5, 3))               # huge: covers the whole image
+    means[30:35] = [[0, 0, 4]] * 5
+    scales[35:60] = 1e-5                                     # tiny
+    q = rng.normal(size=(n, 4))
+    sh = rng.normal(0, 0.6, (n, (degree + 1) ** 2, 3))
+    return Gaussians(means.astype(np.float32), (q / np.linalg.norm(q, axis=1, keepdims=True)).astype(np.float32),
+                     scales.astype(np.float32), rng.uniform(0.05, 1, n).astype(np.float32), sh.astype(np.float32))
+
+
+def origin_camera():
+    return look_at([0, 0, 0], [0, 0, 1], [0, -1, 0], 80.0, 82.0, W, H)
+
+
+def assert_projection_matches(meta, proj):
+    vis = proj["radii"] > 0
+    mismatch = meta["radii"] != proj["radii"]
+    # a radius may differ only where float32 and float64 round 3*sqrt(lambda) to different ceilings
+    assert mismatch.sum() <= max(1, int(0.002 * len(mismatch))), f"{mismatch.sum()} radii differ"
+    both = vis & ~mismatch
+    for key in ("means2d", "conics", "depths"):
+        np.testing.assert_allclose(meta[key][both], proj[key][both], rtol=1e-4, atol=1e-4, err_msg=key)
+    np.testing.assert_array_equal(meta["means2d"][~vis & ~mismatch], 0)
+
+
+def render_both(g, features, cam, background=None):
+    """The kernel render, and the reference V-Render of the kernel's own projection and tile
+    lists (so the blend is compared without projection rounding; those are tested apart)."""
+    img, alpha, meta = qr_cl.rasterize(g.means, g.quats, g.scales, g.opacities, features,
+                                       cam.viewmat, cam.K, cam.width, cam.height, background=background)
+    proj = ref.project(g.means, g.quats, g.scales, g.opacities, cam.viewmat, cam.K, cam.width, cam.height)
+    rimg, ralpha, rdepth = ref.vrender(meta, meta["tile_ranges"], meta["flatten_ids"], features,
+                                       cam.width, cam.height, background)
+    return (img.numpy(), alpha.numpy(), meta), (rimg, ralpha, rdepth, proj)
+
+
+def test_projection_matches_reference_on_hostile_scene():
+    g, cam = hostile_scene(), origin_camera()
+    (_, _, meta), (*_, proj) = render_both(g, g.rgb, cam)
+    assert_projection_matches(meta, proj)
+    radii = meta["radii"]
+    assert (radii[:20] == 0).all(), "Gaussians behind the camera must be culled"
+    assert (radii[30:35] > max(W, H)).all(), "huge Gaussians cover the image"
+    assert (meta["depths"][20:30][radii[20:30] > 0] >= 0.01).all()
+    assert 0 < (radii[20:30] > 0).sum() < 10, "the near plane splits the straddling Gaussians"
+
+
+def test_binning_matches_reference():
+    g, cam = hostile_scene(seed=1), origin_camera()
+    plan = rasterize_plan(g.means, g.quats, g.scales, g.opacities, cam.viewmat, cam.K, W, H)
+    proj = ref.project(g.means, g.quats, g.scales, g.opacities, cam.viewmat, cam.K, W, H)
+    ranges, ids = ref.bin_and_sort(proj, W, H)
+    assert plan.n_keys == len(ids) == proj["tiles_touched"].sum()
+    np.testing.assert_array_equal(plan.ranges.get(), ranges)
+    np.testing.assert_array_equal(plan.ids.get()[:plan.n_keys], ids)
+
+
+@pytest.mark.parametrize("channels", [1, 3, 5, 64, 512])
+def test_vrender_matches_reference(channels):
+    g, cam = hostile_scene(seed=channels), origin_camera()
+    features = np.random.default_rng(channels).normal(size=(len(g), channels)).astype(np.float32)
+    (img, alpha, meta), (rimg, ralpha, rdepth, proj) = render_both(g, features, cam)
+    assert img.shape == (H, W, channels) and alpha.shape == (H, W, 1)
+    assert np.abs(img - rimg).max() < 1e-4
+    assert np.abs(alpha - ralpha).max() < 1e-4
+    assert np.abs(meta["depth"] - rdepth).max() < 1e-4 * max(1, rdepth.max())
+    assert (ralpha > 0.5).mean() > 0.3 and np.abs(rimg).max() > 0.1  # the test sees real content
+
+
+def test_background_is_blended_with_the_remaining_transmittance():
+    g, cam = hostile_scene(n=200, seed=3), origin_camera()
+    bg = np.array([0.2, -0.5, 1.0], np.float32)
+    (img, alpha, _), (rimg, ralpha, *_) = render_both(g, g.rgb, cam, background=bg)
+    assert np.abs(img - rimg).max() < 1e-4
+    (plain, *_), _ = render_both(g, g.rgb, cam)
+    np.testing.assert_allclose(img - plain, (1 - alpha) * bg, atol=1e-5)
+
+
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+def test_sh_colours_match_reference(degree):
+    g = hostile_scene(n=300, seed=degree, degree=degree)
+    campos = np.array([0.3, -0.2, -1.0])
+    rt = runtime()
+    rgb = sh_colors(rt, to_device(rt, g.means), g.sh, campos).get()
+    np.testing.assert_allclose(rgb[:, :3], ref.sh_to_rgb(g.means, g.sh, campos), atol=1e-5)
+    assert (rgb[:, 3] == 0).all()
+
+
+def test_rgb_render_from_sh_uses_the_view_direction():
+    g = hostile_scene(n=400, seed=7, degree=2)
+    cam = origin_camera()
+    img, _, _ = qr_cl.rasterize(g.means, g.quats, g.scales, g.opacities, torch.from_numpy(g.sh),
+                                cam.viewmat, cam.K, W, H, sh_degree=2)
+    rgb = ref.sh_to_rgb(g.means, g.sh, cam.position)
+    rimg, *_ = ref.render(g.means, g.quats, g.scales, g.opacities, rgb, cam.viewmat, cam.K, W, H)
+    assert np.abs(img.numpy() - rimg).max() < 1e-4
+
+
+def test_empty_scene_and_nothing_visible():
+    cam = origin_camera()
+    empty = np.zeros((0, 3), np.float32)
+    img, alpha, meta = qr_cl.rasterize(empty, np.zeros((0, 4)), empty, np.zeros(0), np.zeros((0, 4)),
+                                       cam.viewmat, cam.K, W, H, background=np.ones(4))
+    assert img.shape == (H, W, 4) and (img.numpy() == 1).all() and (alpha.numpy() == 0).all()
+    g = hostile_scene(n=60)
+    g.means[:, 2] = -1
+    img, alpha, meta = qr_cl.rasterize(g.means, g.quats, g.scales, g.opacities, g.rgb,
+                                       cam.viewmat, cam.K, W, H)
+    assert meta["n_keys"] == 0 and (img.numpy() == 0).all() and (alpha.numpy() == 0).all()
+
+
+def test_bad_input_shapes_are_named():
+    g, cam = hostile_scene(n=60), origin_camera()
+    with pytest.raises(ValueError, match="quats has shape"):
+        qr_cl.rasterize(g.means, g.quats[:, :3], g.scales, g.opacities, g.rgb, cam.viewmat, cam.K, W, H)
+    with pytest.raises(ValueError, match="2049 channels"):
+        qr_cl.rasterize(g.means, g.quats, g.scales, g.opacities, np.zeros((60, 2049)), cam.viewmat, cam.K, W, H)
+
+
+@pytest.mark.parametrize("scene", ["fox", "donut"])
+@pytest.mark.parametrize("channels", [3, 64])
+def test_real_scenes_match_reference(request, scene, channels):
+    if scene == "fox":
+        g = request.getfixturevalue("fox")
+        cam = orbit_cameras(g.means, 8, 160, 120)[3]
+    else:
+        g, (cam,) = request.getfixturevalue("donut")
+        cam = cam.resized(192, 108)
+    features = g.rgb if channels == 3 else \
+        np.random.default_rng(0).random((len(g), channels)).astype(np.float32)
+    (img, alpha, meta), (rimg, ralpha, rdepth, proj) = render_both(g, features, cam)
+    assert_projection_matches(meta, proj)
+    assert np.abs(img - rimg).max() < 1e-4
+    assert np.abs(alpha - ralpha).max() < 1e-4
+    assert (ralpha > 0.5).mean() > 0.05
+    # End to end against the all-reference pipeline (float64 projection): only pixels where an
+    # alpha lands within rounding of 1/255 (or T of 1e-4) may differ by more than 1e-4.
+    full, *_ = ref.render(g.means, g.quats, g.scales, g.opacities, features, cam.viewmat, cam.K,
+                          cam.width, cam.height)
+    differing = (np.abs(img - full).max(-1) > 1e-4).mean()
+    assert differing < 1e-3, f"{differing:.2%} of pixels differ from the float64 pipeline"
