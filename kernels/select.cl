@@ -20,6 +20,15 @@
     const int2 range = ranges[pixel_tile(x, y, tiles_x)]; \
     const float px = x + 0.5f, py = y + 0.5f;
 
+/* Divide the n weights T^Q_j alpha'_j by 1 - T^Q. 1 - T^Q equals their sum exactly (telescoping);
+   the sum of positive terms is the better conditioned of the two in float (1 - T^Q cancels when
+   alpha is small), and makes the normalized weights sum to 1 to rounding. */
+inline void normalize(__global float *w, int n) {
+    float sum = 0.f;
+    for (int j = 0; j < n; j++) sum += w[j];
+    for (int j = 0; j < n; j++) w[j] /= sum;
+}
+
 /* Q-Render selection, Algorithm 1 of the paper. */
 __kernel void select_quantile(RAY_ARGS, const int K, __global int *out_ids, __global float *out_w,
                               __global int *count, __global float *t_walk,
@@ -46,7 +55,7 @@ __kernel void select_quantile(RAY_ARGS, const int K, __global int *out_ids, __gl
         T = T_test;
         if (T_test < stop) break;
     }
-    for (int j = 0; j < n; j++) sw[j] /= 1.f - TQ;    /* normalize: weights sum to 1 */
+    normalize(sw, n);
     for (int j = n; j < K; j++) { sid[j] = -1; sw[j] = 0.f; }
     count[p] = n; t_walk[p] = T; t_sel[p] = TQ; t_rem[p] = n ? 0.f : 1.f;
 }
@@ -123,7 +132,7 @@ __kernel void select_topk(RAY_ARGS, const int K, __global int *out_ids, __global
         hw[j] = TQ * a;
         TQ *= 1.f - a;
     }
-    for (int j = 0; j < n; j++) hw[j] /= 1.f - TQ;
+    normalize(hw, n);
     for (int j = n; j < K; j++) { hp[j] = -1; hw[j] = 0.f; }
     count[p] = n; t_walk[p] = T; t_sel[p] = TQ; t_rem[p] = n ? 0.f : 1.f;
 }

@@ -4,11 +4,14 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from .autograd import blend
+from .blend import blend_forward
 from .device import runtime
 from .raster import rasterize_plan, to_device
+from .samplers import check_pixels, select
 from .vrender import channel_layout, padded_rows, render_fused, sh_colors
 
-SAMPLERS = ("volume",)
+SAMPLERS = ("volume", "quantile", "topk", "volume_fused")
 
 
 def _host(x, name: str, shape: tuple) -> np.ndarray:
@@ -21,7 +24,7 @@ def _host(x, name: str, shape: tuple) -> np.ndarray:
 
 def rasterize(means, quats, scales, opacities, features, viewmat, K, width: int, height: int,
               sampler: str = "volume", k: int = 40, sh_degree: int | None = None,
-              near: float = 0.01, far: float = 1e10, background=None):
+              near: float = 0.01, far: float = 1e10, background=None, pixels=None):
     """Render C-dim features (or RGB from SH) of 3D Gaussians for one pinhole camera.
 
     Args:
@@ -32,18 +35,38 @@ def rasterize(means, quats, scales, opacities, features, viewmat, K, width: int,
             evaluated per view into RGB.
         viewmat: [4,4] world-to-camera (OpenCV axes: x right, y down, z forward).
         K: [3,3] intrinsics in pixels. width, height: image size in pixels.
-        sampler: "volume" (full alpha blending, fused kernel). ``k`` is the sampler's K (unused
-            by "volume").
+        sampler: "volume" (full alpha blending, V-Render), "quantile" (Q-Render, Algorithm 1 with
+            K = ``k``), "topk" (the ``k`` largest V-Render weights, blended as Q-Render does) or
+            "volume_fused" (V-Render in one fused kernel, whole image only, no gradients). "volume"
+            of a whole image whose features need no gradient runs the fused kernel too (same
+            weights, same summation order, same image); otherwise rendering is select -> blend.
         near, far: depth culling planes (camera z, world units).
-        background: [C] colour blended with the remaining transmittance, or None (black).
+        background: [C] blended with the background weight of each ray, or None (black): the
+            remaining transmittance for volume; for quantile/topk (whose normalized weights sum
+            to 1) it shows only through rays that selected no Gaussian.
+        pixels: None (the whole image) or [P,2] integer (x, y) pixel coordinates: render only those
+            rays (cost proportional to P).
 
     Returns:
-        render [H,W,C] float32, alpha [H,W,1] float32 (1 - final transmittance) and a meta dict
-        with means2d [N,2] (px), conics [N,3], depths [N] (camera z), radii [N] int32 (0 = culled),
-        opacities [N], tile_ranges [tiles,2], n_keys, and depth [H,W,1] (expected depth).
+        render [H,W,C] (or [P,C] for ``pixels``) float32, alpha [H,W,1] (or [P,1]): 1 - the
+        transmittance where the ray's walk stopped (for quantile the walk stops once T < 1/(K+1)),
+        and a meta dict with means2d [N,2] (px), conics [N,3], depths [N] (camera z), radii [N]
+        int32 (0 = culled), opacities [N], tile_ranges [tiles,2], n_keys, and either depth [H,W,1]
+        (expected depth; fused path) or selection (the :class:`qr_cl.samplers.Selection` used).
+
+        The render is differentiable w.r.t. ``features`` (a [N,C] tensor with requires_grad) and
+        ``background`` through :class:`qr_cl.autograd.BlendFunction`. No gradient is produced for
+        means, quats, scales, opacities, viewmat or K (the Gaussians are frozen in GS-Net), nor for
+        SH coefficients (``sh_degree`` set).
     """
     if sampler not in SAMPLERS:
         raise ValueError(f"sampler={sampler!r}: available samplers are {SAMPLERS}")
+    if sampler in ("quantile", "topk") and (isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1):
+        raise ValueError(f"k must be an integer >= 1 for sampler={sampler!r}, got {k!r}")
+    if pixels is not None:
+        if sampler == "volume_fused":
+            raise ValueError("sampler='volume_fused' renders whole images; use 'volume' with pixels")
+        pixels = check_pixels(pixels, width, height)
     means = _host(means, "means", (-1, 3))
     n = len(means)
     quats = _host(quats, "quats", (n, 4))
@@ -65,8 +88,9 @@ def rasterize(means, quats, scales, opacities, features, viewmat, K, width: int,
             raise ValueError(f"features have {channels} channels; 1..2048 are supported")
     if n == 0:
         bg = np.zeros(channels, np.float32) if background is None else _host(background, "background", (channels,))
-        render = np.broadcast_to(bg, (height, width, channels)).copy()
-        zeros = np.zeros((height, width, 1), np.float32)
+        shape = (height, width) if pixels is None else (len(pixels),)
+        render = np.broadcast_to(bg, (*shape, channels)).copy()
+        zeros = np.zeros((*shape, 1), np.float32)
         meta = {"means2d": np.zeros((0, 2), np.float32), "conics": np.zeros((0, 3), np.float32),
                 "depths": np.zeros(0, np.float32), "radii": np.zeros(0, np.int32),
                 "opacities": np.zeros(0, np.float32), "n_keys": 0, "depth": zeros}
@@ -74,13 +98,32 @@ def rasterize(means, quats, scales, opacities, features, viewmat, K, width: int,
 
     rt = runtime()
     plan = rasterize_plan(means, quats, scales, opacities, viewmat, K, width, height, near, far, rt)
+    bg = None if background is None else _host(background, "background", (channels,))
+    wants_grad = sh_degree is None and torch.is_grad_enabled() and any(
+        isinstance(t, torch.Tensor) and t.requires_grad for t in (features, background))
+    fused = sampler == "volume_fused" or (sampler == "volume" and pixels is None and not wants_grad)
     if sh_degree is not None:
         campos = -viewmat[:3, :3].T @ viewmat[:3, 3]
         device_features = sh_colors(rt, to_device(rt, means), sh, campos)
-    else:
+    elif fused or not wants_grad:
         device_features = to_device(rt, padded_rows(feats, channel_layout(channels)[2]))
-    bg = None if background is None else _host(background, "background", (channels,))
-    image, alpha, depth = render_fused(plan, device_features, channels, bg)
     meta = plan.meta()
-    meta["depth"] = depth
-    return torch.from_numpy(image), torch.from_numpy(alpha), meta
+    if fused:
+        image, alpha, depth = render_fused(plan, device_features, channels, bg)
+        meta["depth"] = depth
+        return torch.from_numpy(image), torch.from_numpy(alpha), meta
+
+    sel = select(plan, sampler, k, pixels)
+    meta["selection"] = sel
+    if wants_grad:
+        tensor_bg = background if isinstance(background, torch.Tensor) else (
+            None if bg is None else torch.from_numpy(bg))
+        tensor_features = features if isinstance(features, torch.Tensor) else torch.from_numpy(feats)
+        render = blend(sel, tensor_features, tensor_bg)
+    else:
+        rows = blend_forward(sel, device_features, channels, bg).get()[:, :channels]
+        render = torch.from_numpy(np.ascontiguousarray(rows))
+    alpha = torch.from_numpy(1 - sel.t_walk.get()[:sel.n_rays, None])
+    if pixels is None:
+        render, alpha = render.reshape(height, width, channels), alpha.reshape(height, width, 1)
+    return render, alpha, meta
