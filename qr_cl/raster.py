@@ -6,6 +6,7 @@ Pipeline: ``project.cl`` (one work-item per Gaussian) -> exclusive scan of tiles
 """
 from __future__ import annotations
 
+from contextlib import contextmanager
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -72,6 +73,21 @@ def _radix_sort(context: cl.Context) -> RadixSort:
 def to_device(rt: Runtime, array: np.ndarray, dtype=np.float32) -> cla.Array:
     """A contiguous device copy of a host array."""
     return cla.to_device(rt.queue, np.ascontiguousarray(array, dtype=dtype))
+
+
+@contextmanager
+def host_output(rt: Runtime, array: np.ndarray):
+    """A device buffer that the kernels write straight into ``array`` (C-contiguous host memory).
+
+    Zero-copy on CPU devices (USE_HOST_PTR); on leaving the block the buffer is mapped for
+    reading, which on discrete GPUs copies the result into ``array``. Avoids allocating and
+    copying a second [H*W, C] image.
+    """
+    buf = cl.Buffer(rt.context, cl.mem_flags.WRITE_ONLY | cl.mem_flags.USE_HOST_PTR, hostbuf=array)
+    yield buf
+    mapped, _ = cl.enqueue_map_buffer(rt.queue, buf, cl.map_flags.READ, 0, array.shape, array.dtype)
+    mapped.base.release(rt.queue)
+    rt.queue.finish()
 
 
 def sort_pairs(rt: Runtime, keys: cla.Array, values: cla.Array, key_bits: int) -> tuple[cla.Array, cla.Array]:

@@ -5,7 +5,7 @@ import numpy as np
 import pyopencl.array as cla
 
 from .device import Runtime
-from .raster import TILE, RasterPlan, to_device
+from .raster import TILE, RasterPlan, host_output, to_device
 
 
 def channel_layout(channels: int) -> tuple[int, int, int]:
@@ -60,17 +60,17 @@ def render_fused(plan: RasterPlan, features: cla.Array, channels: int,
     if features.shape[-1] != cstride:
         raise ValueError(f"features have row length {features.shape[-1]}, expected {cstride}")
     h, w = plan.height, plan.width
-    image = cla.empty(rt.queue, (h * w, cstride), np.float32)
+    image = np.empty((h, w, cstride), np.float32)
     alpha = cla.empty(rt.queue, h * w, np.float32)
     depth = cla.empty(rt.queue, h * w, np.float32)
     bg = np.zeros(cstride, np.float32)
     if background is not None:
         bg[:channels] = np.asarray(background, np.float32).reshape(-1)[:channels]
     n_pix = plan.tiles_x * plan.tiles_y * TILE * TILE
-    rt.kernel("vrender.cl", "vrender", VW=vw, NV=nv)(
-        rt.queue, (n_pix, cstride // (vw * nv)), None, plan.ranges.data, plan.ids.data,
-        plan.splats.data, features.data, np.int32(cstride), np.int32(w), np.int32(h),
-        np.int32(plan.tiles_x), to_device(rt, bg).data, np.int32(background is not None),
-        image.data, alpha.data, depth.data)
-    img = image.get().reshape(h, w, cstride)[:, :, :channels]
-    return np.ascontiguousarray(img), alpha.get().reshape(h, w, 1), depth.get().reshape(h, w, 1)
+    with host_output(rt, image) as image_buf:
+        rt.kernel("vrender.cl", "vrender", VW=vw, NV=nv)(
+            rt.queue, (n_pix,), None, plan.ranges.data, plan.ids.data, plan.splats.data,
+            features.data, np.int32(cstride), np.int32(w), np.int32(h), np.int32(plan.tiles_x),
+            to_device(rt, bg).data, np.int32(background is not None), image_buf, alpha.data, depth.data)
+    img = image if cstride == channels else np.ascontiguousarray(image[:, :, :channels])
+    return img, alpha.get().reshape(h, w, 1), depth.get().reshape(h, w, 1)
