@@ -1,0 +1,40 @@
+"""Shared bench fixtures. Full sizes run with ``--benchmark-only`` (or QR_CL_BENCH_FULL=1);
+otherwise every benchmark runs once on tiny inputs as a smoke test of the code path."""
+from __future__ import annotations
+
+import os
+import warnings
+from pathlib import Path
+
+import pytest
+
+# the real scenes, as in tests/conftest.py: QR_CL_DATA or ../shared/data beside the repository
+DATA = Path(os.environ.get("QR_CL_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
+
+
+@pytest.fixture(scope="session")
+def bench_full(request) -> bool:
+    """True for real measurements, False for the smoke mode of the default test run."""
+    if os.environ.get("QR_CL_BENCH_FULL") == "1":
+        return True
+    return bool(request.config.getoption("benchmark_only", False))
+
+
+@pytest.fixture(scope="session")
+def fox_or_procedural(bench_full):
+    """(Gaussians, width, height): the real fox at 640x480 in full mode, else a tiny procedural
+    scene at 64x48 (also when ../shared/data is missing)."""
+    import qr_cl
+    from qr_cl.procedural import procedural_scene
+    fox = DATA / "wakufactory-fox" / "fox.ply"
+    if bench_full and fox.is_file():
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            return qr_cl.load_ply(fox), 640, 480
+    return procedural_scene(2000), 64, 48
+
+
+def run(benchmark, fn, full: bool, rounds: int = 5):
+    """Time ``fn`` (which must finish its OpenCL queue) with warm-up in full mode, once in smoke."""
+    return benchmark.pedantic(fn, rounds=rounds if full else 1, iterations=1,
+                              warmup_rounds=1 if full else 0)
