@@ -4,12 +4,9 @@ from __future__ import annotations
 
 import os
 import warnings
-from pathlib import Path
 
 import pytest
-
-# the real scenes, as in tests/conftest.py: QR_CL_DATA or ../shared/data beside the repository
-DATA = Path(os.environ.get("QR_CL_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
+from benchutil import DATA
 
 
 @pytest.fixture(scope="session")
@@ -32,9 +29,3 @@ def fox_or_procedural(bench_full):
             warnings.simplefilter("ignore")
             return qr_cl.load_ply(fox), 640, 480
     return procedural_scene(2000), 64, 48
-
-
-def run(benchmark, fn, full: bool, rounds: int = 5):
-    """Time ``fn`` (which must finish its OpenCL queue) with warm-up in full mode, once in smoke."""
-    return benchmark.pedantic(fn, rounds=rounds if full else 1, iterations=1,
-                              warmup_rounds=1 if full else 0)

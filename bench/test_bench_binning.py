@@ -10,7 +10,7 @@ import numpy as np
 import pyopencl.array as cla
 import pytest
 
-from conftest import run
+from benchutil import run
 from qr_cl import raster
 from qr_cl.camera import orbit_cameras
 from qr_cl.device import runtime

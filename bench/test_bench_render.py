@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import qr_cl
-from conftest import run
+from benchutil import run
 from qr_cl import reference as ref
 from qr_cl.camera import orbit_cameras
 

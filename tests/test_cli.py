@@ -1,0 +1,51 @@
+"""The qr-cl command line: demo, render, devices, errors."""
+import numpy as np
+from matplotlib.image import imread
+
+from qr_cl.cli import main
+
+
+def test_demo_writes_pictures_with_content(tmp_path, capsys):
+    assert main(["demo", "--out", str(tmp_path), "--gaussians", "3000", "--views", "2"]) == 0
+    assert "Report:" in capsys.readouterr().out
+    rgb = imread(tmp_path / "view_000_rgb.png")
+    alpha = imread(tmp_path / "view_001_alpha.png")
+    assert rgb.shape[:2] == (480, 640) and rgb[..., :3].std() > 0.05
+    assert 0.05 < (alpha[..., 0] > 0.5).mean() < 0.95
+    assert (tmp_path / "view_001_depth.png").is_file() and (tmp_path / "procedural.ply").is_file()
+
+
+def test_render_orbit_of_a_saved_scene(tmp_path):
+    assert main(["demo", "--out", str(tmp_path / "d"), "--gaussians", "1000", "--views", "1"]) == 0
+    out = tmp_path / "r"
+    assert main(["render", str(tmp_path / "d" / "procedural.ply"), "--orbit", "2", "--width", "64",
+                 "--height", "48", "--out", str(out)]) == 0
+    assert imread(out / "001_rgb.png").shape[:2] == (48, 64)
+
+
+def test_render_bad_file_is_a_one_line_error(tmp_path, capsys):
+    (tmp_path / "bad.ply").write_bytes(b"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nend_header\n1\n")
+    assert main(["render", str(tmp_path / "bad.ply"), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("qr-cl: error:") and "bad.ply" in err and "Traceback" not in err
+
+
+def test_devices_marks_the_chosen_one(capsys):
+    assert main(["devices"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert sum(line.startswith("*") for line in lines) == 2  # the device line and the legend
+
+
+def test_donut_renders_recognizably(shared_data, tmp_path):
+    """The real donut from its own camera: a centred object covering a good part of the frame."""
+    layout = shared_data / "v3dg-donut" / "_SingleDonut.json"
+    assert main(["render", str(shared_data / "v3dg-donut" / "donut_fused.ply"), "--cameras", str(layout),
+                 "--width", "480", "--out", str(tmp_path)]) == 0
+    alpha = imread(tmp_path / "000_alpha.png")[..., 0]
+    rgb = imread(tmp_path / "000_rgb.png")[..., :3]
+    assert alpha.shape == (270, 480)
+    ys, xs = np.nonzero(alpha > 0.5)
+    assert 0.1 < (alpha > 0.5).mean() < 0.6
+    assert abs(xs.mean() - 240) < 40 and abs(ys.mean() - 135) < 60
+    pink = (rgb[..., 0] > 0.7) & (rgb[..., 2] > 0.6) & (rgb[..., 1] < 0.75)  # frosting
+    assert pink.sum() > 0.05 * len(xs)
