@@ -283,3 +283,23 @@ def blend(ids: np.ndarray, weights: np.ndarray, features: np.ndarray, t_rem: np.
     if background is not None:
         image = image + np.asarray(t_rem, np.float64)[:, None] * np.asarray(background, np.float64)[None]
     return image
+
+
+def quantile_margin(alpha: np.ndarray, K: int) -> float:
+    """Smallest relative distance, along Algorithm 1's walk of one ray, between a T_test and a
+    transmittance boundary it is compared with (the next quantile boundary or the stop 1/(K+1)).
+    Kernel and reference may disagree on a ray only where this is at float rounding level."""
+    one = np.float32(1)
+    T, k, margin = one, 0, np.inf
+    stop = one / np.float32(K + 1)
+    for i in np.flatnonzero(alpha):
+        t_test = T * (one - np.float32(alpha[i]))
+        for b in (quantile_boundary(k, K), stop):
+            if b > 0:
+                margin = min(margin, abs(float(t_test) - float(b)) / float(b))
+        while t_test < quantile_boundary(k, K):
+            k += 1
+        T = t_test
+        if t_test < stop:
+            break
+    return float(margin)

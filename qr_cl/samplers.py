@@ -77,7 +77,8 @@ class Selection:
     def host(self) -> dict[str, np.ndarray]:
         """Host copies as dense arrays: ids [P,L] (-1 padded) and weights [P,L] (0 padded) with L the
         longest list, count, t_walk, t_sel, t_rem [P]."""
-        count, offsets = self.count.get(), self.offsets.get()
+        n = self.n_rays
+        count, offsets = self.count.get()[:n], self.offsets.get()[:n]
         width = int(count.max(initial=0))
         cols = np.arange(width)
         valid = cols[None] < count[:, None]
@@ -85,8 +86,8 @@ class Selection:
         ids_all, w_all = self.ids.get(), self.weights.get()
         ids = np.where(valid, ids_all[index] if ids_all.size else 0, -1).astype(np.int32)
         w = np.where(valid, w_all[index] if w_all.size else 0, 0).astype(np.float32)
-        return {"ids": ids, "weights": w, "count": count, "t_walk": self.t_walk.get(),
-                "t_sel": self.t_sel.get(), "t_rem": self.t_rem.get()}
+        return {"ids": ids, "weights": w, "count": count, "t_walk": self.t_walk.get()[:n],
+                "t_sel": self.t_sel.get()[:n], "t_rem": self.t_rem.get()[:n]}
 
 
 @lru_cache(maxsize=None)
