@@ -1,0 +1,119 @@
+"""Selection and blend time per sampler next to the fused V-Render, in the same run.
+
+    pytest bench/test_bench_samplers.py --benchmark-only
+
+Full mode: the fox scene (50k Gaussians, orbit camera 1 of 8) at 640x480, C = 512, K in {10, 40};
+smoke mode (default run): a tiny procedural scene at 64x48. Every timed call ends with
+``queue.finish()``; outputs of the blend and the fused kernel are written into reused device
+buffers (a fresh 600 MB buffer costs ~0.3 s of page faults on PoCL) and stay on the device.
+"""
+import numpy as np
+import pyopencl.array as cla
+import pytest
+
+from benchutil import run
+from qr_cl.blend import blend_backward, blend_forward
+from qr_cl.camera import orbit_cameras
+from qr_cl.raster import rasterize_plan, to_device
+from qr_cl.samplers import select
+from qr_cl.vrender import channel_layout, padded_rows, render_fused
+
+C = 512
+CASES = [("volume", 0), ("quantile", 10), ("quantile", 40), ("topk", 10), ("topk", 40)]
+
+
+@pytest.fixture(scope="module")
+def setup(fox_or_procedural):
+    g, w, h = fox_or_procedural
+    cam = orbit_cameras(g.means, 8, w, h)[1]
+    plan = rasterize_plan(g.means, g.quats, g.scales, g.opacities, cam.viewmat, cam.K, w, h)
+    feats = np.random.default_rng(0).standard_normal((len(g), C)).astype(np.float32)
+    q = plan.runtime.queue
+    out = cla.empty(q, (w * h, channel_layout(C)[2]), np.float32)
+    return plan, to_device(plan.runtime, padded_rows(feats, channel_layout(C)[2])), out
+
+
+def _label(sampler: str, k: int) -> str:
+    return sampler if sampler == "volume" else f"{sampler} K={k}"
+
+
+def test_fused_vrender(benchmark, setup, bench_full):
+    """The fused V-Render kernel alone (no stored selection), into a reused buffer."""
+    plan, features, out = setup
+    rt, q = plan.runtime, plan.runtime.queue
+    vw, nv, cstride = channel_layout(C)
+    alpha, depth = (cla.empty(q, plan.width * plan.height, np.float32) for _ in range(2))
+    bg = to_device(rt, np.zeros(cstride, np.float32))
+    kernel = rt.kernel("vrender.cl", "vrender", VW=vw, NV=nv)
+    n_pix = plan.tiles_x * plan.tiles_y * 256
+
+    def fused():
+        kernel(q, (n_pix, cstride // (vw * nv)), None, plan.ranges.data, plan.ids.data,
+               plan.splats.data, features.data, np.int32(cstride), np.int32(plan.width),
+               np.int32(plan.height), np.int32(plan.tiles_x), bg.data, np.int32(0), out.data,
+               alpha.data, depth.data)
+        q.finish()
+
+    benchmark.group = "fused V-Render vs select + blend"
+    run(benchmark, fused, bench_full)
+    sel = select(plan, "volume", 1)
+    same = blend_forward(sel, features, C).get()
+    q.finish()
+    np.testing.assert_allclose(out.get(), same, rtol=1e-5, atol=1e-5)
+
+
+def test_fused_vrender_public(benchmark, setup, bench_full):
+    """render_fused as rasterize() calls it: fresh output buffer and the copy back to the host."""
+    plan, features, _ = setup
+    benchmark.group = "fused V-Render vs select + blend"
+    image, _, _ = run(benchmark, lambda: render_fused(plan, features, C), bench_full)
+    assert image.shape == (plan.height, plan.width, C)
+
+
+@pytest.mark.parametrize("sampler,k", CASES)
+def test_select(benchmark, setup, bench_full, sampler, k):
+    plan, _, _ = setup
+
+    def step():
+        sel = select(plan, sampler, k or 1)
+        plan.runtime.queue.finish()
+        return sel
+
+    benchmark.group = "fused V-Render vs select + blend"
+    benchmark.name = f"select {_label(sampler, k)}"
+    sel = run(benchmark, step, bench_full)
+    counts = sel.count.get()
+    benchmark.extra_info["mean_entries_per_ray"] = float(counts.mean())
+    assert counts.max() > 0
+
+
+@pytest.mark.parametrize("sampler,k", CASES)
+def test_blend(benchmark, setup, bench_full, sampler, k):
+    plan, features, out = setup
+    sel = select(plan, sampler, k or 1)
+
+    def step():
+        blend_forward(sel, features, C, out=out)
+        plan.runtime.queue.finish()
+
+    benchmark.group = "fused V-Render vs select + blend"
+    benchmark.name = f"blend {_label(sampler, k)}"
+    run(benchmark, step, bench_full)
+
+
+@pytest.mark.parametrize("sampler,k", CASES)
+def test_backward(benchmark, setup, bench_full, sampler, k):
+    """dF from dImage, including the transpose of the selection (rebuilt every round)."""
+    plan, features, out = setup
+    sel = select(plan, sampler, k or 1)
+
+    def step():
+        sel.transposed = None
+        d = blend_backward(sel, out, C)
+        plan.runtime.queue.finish()
+        return d
+
+    benchmark.group = "backward"
+    benchmark.name = f"backward {_label(sampler, k)}"
+    d = run(benchmark, step, bench_full)
+    assert d.shape == (sel.n_gaussians, channel_layout(C)[2])
