@@ -2,12 +2,17 @@
 from __future__ import annotations
 
 import argparse
+import importlib
 import sys
 import time
 import warnings
 from pathlib import Path
 
 import numpy as np
+
+
+# Sub-commands implemented in their own modules, each with add_arguments(parser) and run(args).
+DELEGATED = {"demo": ("demo", "the embedded default job (see README)")}
 
 
 def _cmd_devices(args: argparse.Namespace) -> int:
@@ -24,7 +29,7 @@ def _cmd_devices(args: argparse.Namespace) -> int:
     return 0
 
 
-def _render_views(gaussians, cameras, out: Path, sh_degree: int | None, prefix: str = "") -> float:
+def render_views(gaussians, cameras, out: Path, sh_degree: int | None, prefix: str = "") -> float:
     """Render RGB, depth and alpha PNGs of every camera into ``out``; returns seconds spent."""
     from tqdm import tqdm
 
@@ -61,24 +66,8 @@ def _cmd_render(args: argparse.Namespace) -> int:
     else:
         cameras = orbit_cameras(gaussians.means, args.orbit, args.width or 640, args.height or 480,
                                 up_axis=args.up_axis)
-    seconds = _render_views(gaussians, cameras, Path(args.out), args.sh_degree)
+    seconds = render_views(gaussians, cameras, Path(args.out), args.sh_degree)
     print(f"rendered {len(cameras)} views of {len(gaussians)} Gaussians in {seconds:.1f} s -> {args.out}")
-    return 0
-
-
-def _cmd_demo(args: argparse.Namespace) -> int:
-    from .camera import orbit_cameras
-    from .procedural import procedural_scene
-    from .scene import save_ply
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    scene = procedural_scene(args.gaussians, seed=args.seed)
-    save_ply(out / "procedural.ply", scene)
-    cameras = orbit_cameras(scene.means, args.views, 640, 480, elevation_deg=30)
-    seconds = _render_views(scene, cameras, out, None, prefix="view_")
-    print(f"demo: {len(scene)} procedural Gaussians (SH degree {scene.sh_degree}) rendered from "
-          f"{len(cameras)} orbit views in {seconds:.1f} s.\nReport: {out.resolve()} "
-          "(view_*_rgb.png, *_depth.png, *_alpha.png, procedural.ply)")
     return 0
 
 
@@ -96,11 +85,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--up-axis", type=int, default=2, help="world up axis for orbits (2 = z, 1 = y)")
     r.add_argument("--sh-degree", type=int, help="use at most this SH degree (default: the file's)")
     r.add_argument("--out", required=True, help="output folder")
-    d = sub.add_parser("demo", help="the embedded default job: a procedural scene rendered to PNGs")
-    d.add_argument("--out", default="qr-cl-demo", help="output folder (default ./qr-cl-demo)")
-    d.add_argument("--gaussians", type=int, default=20000, help="scene size (default 20000)")
-    d.add_argument("--views", type=int, default=8, help="orbit views (default 8)")
-    d.add_argument("--seed", type=int, default=0)
+    for name, (module, text) in DELEGATED.items():
+        importlib.import_module(f"qr_cl.{module}").add_arguments(sub.add_parser(name, help=text))
     return parser
 
 
@@ -109,7 +95,9 @@ def main(argv: list[str] | None = None) -> int:
     from .device import NoDeviceError
     from .scene import SceneFormatError
     args = build_parser().parse_args(argv)
-    commands = {"devices": _cmd_devices, "render": _cmd_render, "demo": _cmd_demo}
+    commands = {"devices": _cmd_devices, "render": _cmd_render}
+    commands.update({name: importlib.import_module(f"qr_cl.{module}").run
+                     for name, (module, _) in DELEGATED.items()})
     with warnings.catch_warnings():
         warnings.simplefilter("always")
         warnings.formatwarning = lambda msg, cat, *a, **k: f"warning: {msg}\n"
