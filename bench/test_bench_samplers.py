@@ -4,8 +4,9 @@
 
 Full mode: the fox scene (50k Gaussians, orbit camera 1 of 8) at 640x480, C = 512, K in {10, 40};
 smoke mode (default run): a tiny procedural scene at 64x48. Every timed call ends with
-``queue.finish()``; outputs of the blend and the fused kernel are written into reused device
-buffers (a fresh 600 MB buffer costs ~0.3 s of page faults on PoCL) and stay on the device.
+``queue.finish()``. The blend writes into a reused device buffer (a fresh 600 MB buffer costs
+~0.3 s of page faults on PoCL) and leaves the image on the device; the fused V-Render is timed as
+rasterize() calls it (its image lands in a host array through a zero-copy buffer).
 """
 import numpy as np
 import pyopencl.array as cla
@@ -38,36 +39,13 @@ def _label(sampler: str, k: int) -> str:
 
 
 def test_fused_vrender(benchmark, setup, bench_full):
-    """The fused V-Render kernel alone (no stored selection), into a reused buffer."""
-    plan, features, out = setup
-    rt, q = plan.runtime, plan.runtime.queue
-    vw, nv, cstride = channel_layout(C)
-    alpha, depth = (cla.empty(q, plan.width * plan.height, np.float32) for _ in range(2))
-    bg = to_device(rt, np.zeros(cstride, np.float32))
-    kernel = rt.kernel("vrender.cl", "vrender", VW=vw, NV=nv)
-    n_pix = plan.tiles_x * plan.tiles_y * 256
-
-    def fused():
-        kernel(q, (n_pix, cstride // (vw * nv)), None, plan.ranges.data, plan.ids.data,
-               plan.splats.data, features.data, np.int32(cstride), np.int32(plan.width),
-               np.int32(plan.height), np.int32(plan.tiles_x), bg.data, np.int32(0), out.data,
-               alpha.data, depth.data)
-        q.finish()
-
-    benchmark.group = "fused V-Render vs select + blend"
-    run(benchmark, fused, bench_full)
-    sel = select(plan, "volume", 1)
-    same = blend_forward(sel, features, C).get()
-    q.finish()
-    np.testing.assert_allclose(out.get(), same, rtol=1e-5, atol=1e-5)
-
-
-def test_fused_vrender_public(benchmark, setup, bench_full):
-    """render_fused as rasterize() calls it: fresh output buffer and the copy back to the host."""
+    """The fused V-Render (no stored selection) as rasterize() calls it, image written to the host.
+    Its blend of the volume selection is checked against it."""
     plan, features, _ = setup
     benchmark.group = "fused V-Render vs select + blend"
     image, _, _ = run(benchmark, lambda: render_fused(plan, features, C), bench_full)
-    assert image.shape == (plan.height, plan.width, C)
+    blended = blend_forward(select(plan, "volume", 1), features, C).get()
+    np.testing.assert_allclose(image.reshape(blended.shape), blended, rtol=1e-4, atol=1e-4)
 
 
 @pytest.mark.parametrize("sampler,k", CASES)

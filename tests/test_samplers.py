@@ -9,7 +9,6 @@ from qr_cl import reference as ref
 from qr_cl.raster import rasterize_plan
 from qr_cl.samplers import (Selection, plot_transmittance_profiles, select,
                             transmittance_profile)
-from conftest import make_random_scene
 
 RTOL = 1e-5
 
