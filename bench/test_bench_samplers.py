@@ -95,3 +95,29 @@ def test_backward(benchmark, setup, bench_full, sampler, k):
     benchmark.name = f"backward {_label(sampler, k)}"
     d = run(benchmark, step, bench_full)
     assert d.shape == (sel.n_gaussians, channel_layout(C)[2])
+
+
+@pytest.mark.parametrize("k", [5, 10, 20, 40])
+def test_quantile_error_vs_volume(benchmark, setup, bench_full, k):
+    """Q-Render select + blend, with its mean absolute feature error against V-Render over the rays
+    V-Render hits (V-Render divided by its opacity 1 - T, as Q-Render's weights sum to 1; App. C),
+    recorded in extra_info for the 512-D features of the setup (unit-normalized rows here)."""
+    plan, features, out = setup
+    unit = features.get()
+    unit /= np.maximum(np.linalg.norm(unit, axis=1, keepdims=True), 1e-12)
+    unit_dev = to_device(plan.runtime, unit)
+    vol = select(plan, "volume", 1)
+    hit = vol.count.get() > 0
+    v_img = blend_forward(vol, unit_dev, C).get()[hit] / (1 - vol.t_walk.get()[hit, None])
+
+    def step():
+        blend_forward(select(plan, "quantile", k), unit_dev, C, out=out)
+        plan.runtime.queue.finish()
+
+    benchmark.group = "Q-Render select + blend, error vs V-Render"
+    benchmark.name = f"quantile K={k}"
+    run(benchmark, step, bench_full, rounds=3)
+    error = float(np.abs(out.get()[hit] - v_img).mean())
+    benchmark.extra_info["mean_abs_feature_error_vs_volume"] = error
+    print(f"\nK={k}: mean |Q - V/(1-T)| = {error:.5f} over {hit.sum()} rays")
+    assert error < 0.1
