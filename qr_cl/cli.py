@@ -12,7 +12,8 @@ import numpy as np
 
 
 # Sub-commands implemented in their own modules, each with add_arguments(parser) and run(args).
-DELEGATED = {"demo": ("demo", "the embedded default job (see README)")}
+DELEGATED = {"demo": ("demo", "the embedded default job (see README)"),
+             "bench": ("benchmark", "kernel benchmark sweeps: JSON, markdown summary and plots")}
 
 
 def _cmd_devices(args: argparse.Namespace) -> int:

@@ -48,19 +48,24 @@ def sh_colors(rt: Runtime, means: cla.Array, sh: np.ndarray, campos: np.ndarray)
 
 
 def render_fused(plan: RasterPlan, features: cla.Array, channels: int,
-                 background: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                 background: np.ndarray | None = None,
+                 out: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Blend every Gaussian V-Render uses (alpha >= 1/255, until T <= 1e-4) in one kernel.
 
     features [N, cstride] on the device with cstride from :func:`channel_layout` (channels);
     background [channels] or None. Returns image [H,W,channels], alpha [H,W,1] (1 - T) and
     expected depth [H,W,1] (sum of w_i z_i / (1 - T); 0 where nothing was hit), float32.
+    ``out``: an optional C-contiguous float32 [H,W,cstride] host array to render into (reusing one
+    avoids the page faults of a fresh large allocation); with C == cstride the image is a view of it.
     """
     rt = plan.runtime
     vw, nv, cstride = channel_layout(channels)
     if features.shape[-1] != cstride:
         raise ValueError(f"features have row length {features.shape[-1]}, expected {cstride}")
     h, w = plan.height, plan.width
-    image = np.empty((h, w, cstride), np.float32)
+    image = np.empty((h, w, cstride), np.float32) if out is None else out
+    if image.shape != (h, w, cstride) or image.dtype != np.float32 or not image.flags.c_contiguous:
+        raise ValueError(f"out must be a C-contiguous float32 array of shape {(h, w, cstride)}")
     alpha = cla.empty(rt.queue, h * w, np.float32)
     depth = cla.empty(rt.queue, h * w, np.float32)
     bg = np.zeros(cstride, np.float32)

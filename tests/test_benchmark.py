@@ -1,0 +1,49 @@
+"""The ``qr-cl bench`` driver in its smoke mode: report, summary, plots and comparison."""
+import json
+
+import pytest
+
+from qr_cl import benchmark
+from qr_cl.cli import main
+
+
+@pytest.fixture(scope="module")
+def report_dir(tmp_path_factory):
+    out = tmp_path_factory.mktemp("bench")
+    assert main(["bench", "--smoke", "--out", str(out)]) == 0
+    return out
+
+
+def test_report_has_every_stage_and_baseline(report_dir):
+    report = json.loads((report_dir / "report.json").read_text())
+    assert report["version"] == benchmark.REPORT_VERSION and report["meta"]["mode"] == "smoke"
+    stages = {(r["stage"], r["sampler"]) for r in report["results"]}
+    for sampler in ("volume", "quantile", "topk"):
+        for stage in ("selection", "blend-forward", "blend-backward", "end-to-end"):
+            assert (stage, sampler) in stages
+    for expected in [("projection", "-"), ("binning+sort", "-"), ("fused", "volume_fused"),
+                     ("looped-3ch", "volume_fused"), ("blend-forward", "torch-embedding_bag"),
+                     ("blend-forward", "numpy")]:
+        assert expected in stages
+    for row in report["results"]:
+        assert 0 < row["min_s"] <= row["median_s"] and row["rounds"] >= 1 and row["spread_s"] >= 0
+    assert report["limits"]["bandwidth_bytes_s"] > 1e8 and report["limits"]["fma_flops"] > 1e8
+    fits = report["complexity"]["fits"]
+    assert set(fits) == {"volume_fused", "volume", "quantile", "topk"}
+    points = report["complexity"]["points"]
+    assert {p["N"] for p in points} == {8, 16, 32} and {p["C"] for p in points} == {4, 16, 64}
+
+
+def test_summary_and_plots(report_dir):
+    text = (report_dir / "summary.md").read_text()
+    assert "## Q-Render (K=10, C=16)" in text and "looped 3-channel" in text and "embedding_bag" in text
+    assert "## Complexity" in text
+    for name in ("time_vs_k.png", "time_vs_c.png", "roofline.png", "complexity.png"):
+        assert (report_dir / name).stat().st_size > 5000
+
+
+def test_compare_two_reports(report_dir, capsys):
+    path = str(report_dir / "report.json")
+    assert main(["bench", "--compare", path, path]) == 0
+    table = capsys.readouterr().out
+    assert "| 1.00 |" in table and "B / A" in table
