@@ -26,7 +26,7 @@ def keys(fox_or_procedural):
     dev = [raster.to_device(rt, a) for a in (g.means, g.quats, g.scales, g.opacities)]
     splats, _, rects, touched = raster.project(rt, *dev, cam.viewmat, cam.K, w, h, 0.01, 1e10)
     offsets = cla.empty_like(touched)
-    raster._scan(rt.context)(touched, offsets)
+    raster.exclusive_scan(rt.context)(touched, offsets)
     m = int(touched.get().sum())
     keys, values = cla.empty(rt.queue, m, np.uint64), cla.empty(rt.queue, m, np.int32)
     tiles_x = (w + 15) // 16
@@ -39,7 +39,7 @@ def keys(fox_or_procedural):
 def test_scan_pyopencl(benchmark, keys, bench_full):
     rt, (touched, *_) = runtime(), keys
     out = cla.empty_like(touched)
-    run(benchmark, lambda: (raster._scan(rt.context)(touched, out), rt.queue.finish()), bench_full)
+    run(benchmark, lambda: (raster.exclusive_scan(rt.context)(touched, out), rt.queue.finish()), bench_full)
     np.testing.assert_array_equal(out.get(), np.cumsum(touched.get()) - touched.get())
 
 

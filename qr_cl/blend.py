@@ -5,23 +5,17 @@ Features and images live on the device as rows of ``cstride`` floats (see
 """
 from __future__ import annotations
 
-from functools import lru_cache
 
 import numpy as np
-import pyopencl as cl
 import pyopencl.array as cla
-from pyopencl.scan import ExclusiveScanKernel
 
+from .raster import exclusive_scan
 from .samplers import Selection
 from .vrender import channel_layout
 
 MAX_CHUNKS = 64               # rays are split into at most this many chunks for the transpose
 MAX_HIST = 1 << 24            # ... and n_gaussians * chunks stays below this many ints
 
-
-@lru_cache(maxsize=None)
-def _scan(context: cl.Context) -> ExclusiveScanKernel:
-    return ExclusiveScanKernel(context, np.int32, "a+b", "0")
 
 
 def _check_rows(array: cla.Array, rows: int, cstride: int, name: str) -> None:
@@ -80,7 +74,7 @@ def transpose(sel: Selection) -> tuple[cla.Array, cla.Array, cla.Array, int]:
             args = (np.int32(n_rays), np.int32(rays_per), np.int32(chunks), sel.offsets.data,
                     sel.count.data, sel.ids.data)
             rt.kernel("transpose.cl", "transpose_count")(q, (chunks,), None, *args, cursor.data)
-            _scan(rt.context)(cursor)
+            exclusive_scan(rt.context)(cursor)
             rt.kernel("transpose.cl", "transpose_fill")(q, (chunks,), None, *args, sel.weights.data,
                                                     cursor.data, t_ray.data, t_w.data)
         sel.transposed = (cursor, t_ray, t_w, chunks)

@@ -8,7 +8,6 @@ import time
 import warnings
 from pathlib import Path
 
-import numpy as np
 
 
 # Sub-commands implemented in their own modules, each with add_arguments(parser) and run(args).

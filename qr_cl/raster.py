@@ -60,7 +60,8 @@ class RasterPlan:
 
 
 @lru_cache(maxsize=None)
-def _scan(context: cl.Context) -> ExclusiveScanKernel:
+def exclusive_scan(context: cl.Context) -> ExclusiveScanKernel:
+    """pyopencl's exclusive int32 prefix sum for ``context`` (built once per context)."""
     return ExclusiveScanKernel(context, np.int32, "a+b", "0")
 
 
@@ -134,7 +135,7 @@ def bin_and_sort(rt: Runtime, splats: cla.Array, rects: cla.Array, touched: cla.
     n_tiles = tiles_x * tiles_y
     ranges = cla.zeros(rt.queue, (n_tiles, 2), np.int32)
     offsets = cla.empty_like(touched)
-    _scan(rt.context)(touched, offsets)
+    exclusive_scan(rt.context)(touched, offsets)
     last = np.empty(2, np.int32)
     cl.enqueue_copy(rt.queue, last[:1], offsets.base_data, src_offset=offsets.offset + 4 * (n - 1))
     cl.enqueue_copy(rt.queue, last[1:], touched.base_data, src_offset=touched.offset + 4 * (n - 1))

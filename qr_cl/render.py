@@ -8,7 +8,7 @@ from .autograd import blend
 from .blend import blend_forward
 from .device import runtime
 from .raster import rasterize_plan, to_device
-from .samplers import check_pixels, select
+from .samplers import SelectionCache, check_pixels, select, selection_key
 from .vrender import channel_layout, padded_rows, render_fused, sh_colors
 
 SAMPLERS = ("volume", "quantile", "topk", "volume_fused")
@@ -24,7 +24,8 @@ def _host(x, name: str, shape: tuple) -> np.ndarray:
 
 def rasterize(means, quats, scales, opacities, features, viewmat, K, width: int, height: int,
               sampler: str = "volume", k: int = 40, sh_degree: int | None = None,
-              near: float = 0.01, far: float = 1e10, background=None, pixels=None):
+              near: float = 0.01, far: float = 1e10, background=None, pixels=None,
+              cache: SelectionCache | None = None):
     """Render C-dim features (or RGB from SH) of 3D Gaussians for one pinhole camera.
 
     Args:
@@ -46,6 +47,9 @@ def rasterize(means, quats, scales, opacities, features, viewmat, K, width: int,
             to 1) it shows only through rays that selected no Gaussian.
         pixels: None (the whole image) or [P,2] integer (x, y) pixel coordinates: render only those
             rays (cost proportional to P).
+        cache: an optional :class:`qr_cl.samplers.SelectionCache`: the Selection (and its
+            RasterPlan) of the same geometry, camera, sampler, K and rays is then reused instead
+            of recomputed (not used by the fused path).
 
     Returns:
         render [H,W,C] (or [P,C] for ``pixels``) float32, alpha [H,W,1] (or [P,1]): 1 - the
@@ -97,11 +101,23 @@ def rasterize(means, quats, scales, opacities, features, viewmat, K, width: int,
         return torch.from_numpy(render), torch.from_numpy(zeros.copy()), meta
 
     rt = runtime()
-    plan = rasterize_plan(means, quats, scales, opacities, viewmat, K, width, height, near, far, rt)
     bg = None if background is None else _host(background, "background", (channels,))
     wants_grad = sh_degree is None and torch.is_grad_enabled() and any(
         isinstance(t, torch.Tensor) and t.requires_grad for t in (features, background))
     fused = sampler == "volume_fused" or (sampler == "volume" and pixels is None and not wants_grad)
+
+    def make_selection():
+        plan = rasterize_plan(means, quats, scales, opacities, viewmat, K, width, height, near, far, rt)
+        return select(plan, sampler, k, pixels)
+    if fused:
+        plan = rasterize_plan(means, quats, scales, opacities, viewmat, K, width, height, near, far, rt)
+    elif cache is not None:
+        sel = cache.get(selection_key(means, quats, scales, opacities, viewmat, K, width, height, near,
+                                      far, sampler, k, pixels), make_selection)
+        plan = sel.plan
+    else:
+        sel = make_selection()
+        plan = sel.plan
     if sh_degree is not None:
         campos = -viewmat[:3, :3].T @ viewmat[:3, 3]
         device_features = sh_colors(rt, to_device(rt, means), sh, campos)
@@ -113,7 +129,6 @@ def rasterize(means, quats, scales, opacities, features, viewmat, K, width: int,
         meta["depth"] = depth
         return torch.from_numpy(image), torch.from_numpy(alpha), meta
 
-    sel = select(plan, sampler, k, pixels)
     meta["selection"] = sel
     if wants_grad:
         tensor_bg = background if isinstance(background, torch.Tensor) else (

@@ -14,15 +14,14 @@ that selected nothing (background weight 1 there, 0 elsewhere).
 """
 from __future__ import annotations
 
+import hashlib
+from collections import OrderedDict
 from dataclasses import dataclass, field
-from functools import lru_cache
 
 import numpy as np
-import pyopencl as cl
 import pyopencl.array as cla
-from pyopencl.scan import ExclusiveScanKernel
 
-from .raster import TILE, RasterPlan
+from .raster import TILE, RasterPlan, exclusive_scan
 
 SELECT_SAMPLERS = ("volume", "quantile", "topk")
 
@@ -65,7 +64,7 @@ class Selection:
     def nbytes(self) -> int:
         """Device bytes held by the selection (and its cached transpose)."""
         arrays = [self.ids, self.weights, self.offsets, self.count, self.t_walk, self.t_sel, self.t_rem]
-        arrays += list(self.transposed or ())
+        arrays += [a for a in self.transposed or () if isinstance(a, cla.Array)]
         return sum(a.nbytes for a in arrays)
 
     def launch(self) -> tuple[int, int]:
@@ -89,10 +88,6 @@ class Selection:
         return {"ids": ids, "weights": w, "count": count, "t_walk": self.t_walk.get()[:n],
                 "t_sel": self.t_sel.get()[:n], "t_rem": self.t_rem.get()[:n]}
 
-
-@lru_cache(maxsize=None)
-def _scan(context: cl.Context) -> ExclusiveScanKernel:
-    return ExclusiveScanKernel(context, np.int32, "a+b", "0")
 
 
 def check_pixels(pixels, width: int, height: int) -> np.ndarray:
@@ -139,7 +134,7 @@ def select(plan: RasterPlan, sampler: str = "quantile", k: int = 40, pixels=None
                 np.int32(plan.width), np.int32(plan.height), np.int32(plan.tiles_x))
     if sampler == "volume":
         rt.kernel("select.cl", "volume_count")(q, (size,), None, *ray_args, count.data, t_walk.data)
-        _scan(rt.context)(count, sel.offsets)
+        exclusive_scan(rt.context)(count, sel.offsets)
         total = int(sel.offsets[n_rays - 1:n_rays].get()[0] + count[n_rays - 1:n_rays].get()[0])
         sel.ids = cla.empty(q, max(total, 1), np.int32)
         sel.weights = cla.empty(q, max(total, 1), np.float32)
@@ -153,6 +148,64 @@ def select(plan: RasterPlan, sampler: str = "quantile", k: int = 40, pixels=None
             q, (size,), None, *ray_args, np.int32(k), sel.ids.data, sel.weights.data, count.data,
             t_walk.data, t_sel.data, t_rem.data)
     return sel
+
+
+def selection_key(*arrays_and_values) -> str:
+    """A digest of the arrays (bytes, shape, dtype) and values that determine a Selection:
+    Gaussians, camera, image size, near/far, sampler, K and rays. ~2 ms for 50k Gaussians."""
+    h = hashlib.blake2b(digest_size=20)
+    for item in arrays_and_values:
+        if isinstance(item, np.ndarray):
+            h.update(str((item.shape, item.dtype.str)).encode())
+            h.update(np.ascontiguousarray(item).data)
+        else:
+            h.update(repr(item).encode())
+    return h.hexdigest()
+
+
+class SelectionCache:
+    """Selections (with their RasterPlans) kept on the device between calls, least recently used
+    evicted first, at most ``max_bytes`` of device memory in all.
+
+    Selections depend on geometry, camera, sampler and K only, so training can reuse one per view
+    every epoch. A Selection larger than ``max_bytes`` is returned but not kept. Cache-free
+    rendering (no cache passed to :func:`qr_cl.rasterize`) is the default.
+    """
+
+    def __init__(self, max_bytes: int) -> None:
+        if max_bytes <= 0:
+            raise ValueError(f"max_bytes must be positive, got {max_bytes}")
+        self.max_bytes = int(max_bytes)
+        self._entries: OrderedDict[str, Selection] = OrderedDict()
+        self.hits = self.misses = 0
+
+    @staticmethod
+    def _size(sel: Selection) -> int:
+        plan = sel.plan
+        return sel.nbytes + plan.splats.nbytes + plan.radii.nbytes + plan.ranges.nbytes + plan.ids.nbytes
+
+    @property
+    def nbytes(self) -> int:
+        """Device bytes held now."""
+        return sum(self._size(sel) for sel in self._entries.values())
+
+    def get(self, key: str, make) -> Selection:
+        """The Selection cached under ``key``, or ``make()``'s, which is then cached."""
+        if key in self._entries:
+            self.hits += 1
+            self._entries.move_to_end(key)
+            return self._entries[key]
+        self.misses += 1
+        sel = make()
+        size = self._size(sel)
+        if size <= self.max_bytes:
+            while self._entries and self.nbytes + size > self.max_bytes:
+                self._entries.popitem(last=False)
+            self._entries[key] = sel
+        return sel
+
+    def __len__(self) -> int:
+        return len(self._entries)
 
 
 def transmittance_profile(selection: Selection, ray: int) -> tuple[np.ndarray, np.ndarray]:
