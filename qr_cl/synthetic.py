@@ -33,7 +33,7 @@ from .camera import Camera, look_at
 from .metrics import NYU40_NAMES
 from .scene import SH_C0, Gaussians, save_ply
 
-GENERATOR_VERSION = 1
+GENERATOR_VERSION = 2
 
 #: class id -> base RGB colour in [0,1].
 CLASS_COLOURS: dict[int, tuple[float, float, float]] = {
@@ -289,7 +289,7 @@ def write_scene(out: Path, cfg: SyntheticConfig) -> None:
     areas = np.array([_surface_area(m) for _, m in instances])
     n_surface = int(round(cfg.n_gaussians * (1 - cfg.floater_fraction)))
     counts = np.maximum(np.round(n_surface * areas / areas.sum()).astype(int), 16)
-    size = 0.8 * math.sqrt(areas.sum() / counts.sum())
+    size = math.sqrt(areas.sum() / counts.sum())
     parts, inst_ids, points, point_labels = [], [], [], []
     for i, ((cls, meshes), n) in enumerate(zip(instances, counts)):
         pts, nrm = _area_sample(meshes, int(n), rng)

@@ -1,0 +1,314 @@
+"""``qr-cl train``: GS-Net trained through a feature renderer with the contrastive loss (paper App. D).
+
+Each step draws ``batch_scenes`` scenes (seeded by the step, identical on every rank); for each
+scene GS-Net predicts F [N,C], ``views`` random views are drawn, ``rays`` pixels per view inside
+masks are rendered with the chosen sampler and scored by :func:`qr_cl.loss.contrastive_loss`.
+Adam; ReduceLROnPlateau (factor 0.1) on the mean loss of every ``plateau_interval`` steps.
+
+Scale-out: ``torchrun --nproc_per_node N -m qr_cl.train ...`` runs data-parallel over the
+scenes of a step (gloo on CPU): rank r takes slots r, r+N, ...; gradients are summed with
+all_reduce, so N ranks end with the weights of one rank accumulating the same scenes. Every
+process creates its own OpenCL context (torchrun spawns fresh interpreters; never fork after
+OpenCL init). BatchNorm running statistics stay per rank; rank 0's are checkpointed.
+
+Checkpoints (``<out>/checkpoint.pt``) hold model, optimizer, scheduler and the step, written to
+a temporary file and renamed; ``--resume`` continues exactly (all randomness derives from the
+seed and the step).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .data import SceneData, load_scene_folder
+from .loss import contrastive_loss, sample_rays
+
+SAMPLERS = ("quantile", "topk", "volume")
+
+#: UNet presets: name -> overrides of backbone.minkunet14 (empty = MinkUNet14 itself).
+NETS: dict[str, dict] = {
+    "tiny": dict(stem_channels=8, stem_kernel=3, enc_channels=(8, 16, 16, 16), dec_channels=(16, 16, 16, 16)),
+    "small": dict(stem_channels=16, enc_channels=(16, 32, 64, 64), dec_channels=(64, 64, 48, 48)),
+    "mink14": {},
+}
+
+
+@dataclass
+class TrainConfig:
+    """Training options (lengths in scene units, counts per step)."""
+
+    scenes: list[str]
+    out: str
+    steps: int = 200
+    batch_scenes: int = 1
+    views: int = 4
+    rays: int = 2048
+    sampler: str = "quantile"
+    k: int = 40
+    lr: float = 1e-3
+    temperature: float = 0.1
+    grid_size: float = 0.1
+    net: str = "small"
+    seed: int = 0
+    checkpoint_every: int = 50
+    plateau_interval: int = 25
+    patience: int = 2
+    level: int = 0
+    feature_dim: int = field(default=0)
+
+    def __post_init__(self) -> None:
+        if self.sampler not in SAMPLERS:
+            raise ValueError(f"sampler={self.sampler!r}: choose one of {SAMPLERS}")
+        if self.net not in NETS:
+            raise ValueError(f"net={self.net!r}: choose one of {sorted(NETS)}")
+        if not self.scenes:
+            raise ValueError("no training scenes given")
+
+
+def build_net(net: str, feature_dim: int, grid_size: float):
+    """A GSNet with the UNet preset ``net`` (see :data:`NETS`) predicting ``feature_dim``-D features."""
+    from backbone import GSNet, VoxelConfig, minkunet14
+    voxels = VoxelConfig(grid_size=grid_size)
+    return GSNet(feature_dim, voxels, minkunet14(voxels.num_features, **NETS[net]))
+
+
+def gaussian_set(scene: SceneData):
+    """The scene's Gaussians as a backbone.GaussianSet (torch float32)."""
+    from backbone import GaussianSet
+    g = scene.gaussians
+    t = [torch.from_numpy(np.ascontiguousarray(a, np.float32)) for a in (g.means, g.quats, g.scales, g.opacities, g.sh)]
+    return GaussianSet.from_sh(*t)
+
+
+def render_rays(scene: SceneData, features: torch.Tensor, frame_index: int, pixels: np.ndarray,
+                sampler: str, k: int) -> torch.Tensor:
+    """Differentiable render of ``pixels`` [P,2] (x, y) of frame ``frame_index``: [P,C]."""
+    from .render import rasterize
+    g, cam = scene.gaussians, scene.frames[frame_index].camera
+    out, _, _ = rasterize(g.means, g.quats, g.scales, g.opacities, features, cam.viewmat, cam.K,
+                          cam.width, cam.height, sampler=sampler, k=k, pixels=pixels)
+    return out
+
+
+def scene_loss(scene: SceneData, features: torch.Tensor, cfg: TrainConfig, rng: np.random.Generator) -> tuple[torch.Tensor, int]:
+    """Mean contrastive loss over ``cfg.views`` random views of ``cfg.rays`` rays; (loss, rays used)."""
+    usable = [i for i, f in enumerate(scene.frames) if len(f.features) > 1]
+    if not usable:
+        raise ValueError(f"{scene.root}: no frame has two or more masks to contrast")
+    views = rng.choice(usable, cfg.views, replace=cfg.views > len(usable))
+    losses, n = [], 0
+    for v in views:
+        frame = scene.frames[int(v)]
+        pixels, target = sample_rays(frame, cfg.rays, rng)
+        rendered = render_rays(scene, features, int(v), pixels, cfg.sampler, cfg.k)
+        losses.append(contrastive_loss(rendered, torch.from_numpy(target), torch.from_numpy(frame.features),
+                                       cfg.temperature))
+        n += len(pixels)
+    return torch.stack(losses).mean(), n
+
+
+def step_slots(cfg: TrainConfig, step: int, n_scenes: int) -> list[int]:
+    """Scene indices of the ``batch_scenes`` slots of ``step`` (the same on every rank)."""
+    rng = np.random.default_rng([cfg.seed, step, 7])
+    return rng.choice(n_scenes, cfg.batch_scenes, replace=cfg.batch_scenes > n_scenes).tolist()
+
+
+def save_atomic(obj, path: Path) -> None:
+    """torch.save to ``path`` via a temporary file and os.replace (never a half-written file)."""
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+class Trainer:
+    """GS-Net, its optimizer and scheduler, the scenes, and the training loop of one rank."""
+
+    def __init__(self, cfg: TrainConfig, rank: int = 0, world: int = 1):
+        if cfg.batch_scenes % world:
+            raise ValueError(f"batch_scenes={cfg.batch_scenes} must be a multiple of the {world} ranks")
+        self.cfg, self.rank, self.world = cfg, rank, world
+        self.scenes = [load_scene_folder(s, cfg.level) for s in cfg.scenes]
+        dims = {s.feature_dim for s in self.scenes}
+        if len(dims) != 1:
+            raise ValueError(f"the scenes' language features disagree in dimension: "
+                             f"{ {s.name: s.feature_dim for s in self.scenes} }")
+        cfg.feature_dim = dims.pop()
+        torch.manual_seed(cfg.seed)
+        self.net = build_net(cfg.net, cfg.feature_dim, cfg.grid_size)
+        self.batches: dict[int, object] = {}
+        self.opt = torch.optim.Adam(self.net.parameters(), lr=cfg.lr)
+        self.sched = torch.optim.lr_scheduler.ReduceLROnPlateau(self.opt, factor=0.1, patience=cfg.patience)
+        self.step = 0
+        self.window: list[float] = []
+        self.history: list[float] = []
+
+    def batch(self, i: int):
+        """The voxelized scene ``i`` (built once; its kernel maps are cached on it)."""
+        if i not in self.batches:
+            self.batches[i] = self.net.prepare([gaussian_set(self.scenes[i])])
+        return self.batches[i]
+
+    def train_step(self) -> tuple[float, int]:
+        """One optimizer step over this step's scenes; returns (global loss, rays on this rank)."""
+        import torch.distributed as dist
+        cfg = self.cfg
+        self.net.train()
+        self.opt.zero_grad(set_to_none=False)
+        slots = step_slots(cfg, self.step, len(self.scenes))
+        total, rays = torch.zeros(()), 0
+        for slot in range(self.rank, len(slots), self.world):
+            scene = slots[slot]
+            features = self.net(self.batch(scene))
+            loss, n = scene_loss(self.scenes[scene], features, cfg, np.random.default_rng([cfg.seed, self.step, slot]))
+            (loss / cfg.batch_scenes).backward()
+            total += loss.detach() / cfg.batch_scenes
+            rays += n
+        if self.world > 1:
+            for p in self.net.parameters():
+                dist.all_reduce(p.grad)
+            dist.all_reduce(total)
+        self.opt.step()
+        self.step += 1
+        value = float(total)
+        self.history.append(value)
+        self.window.append(value)
+        if len(self.window) == cfg.plateau_interval:
+            self.sched.step(float(np.mean(self.window)))
+            self.window = []
+        return value, rays
+
+    def state(self) -> dict:
+        """Everything a resume needs."""
+        return {"model": self.net.state_dict(), "optimizer": self.opt.state_dict(),
+                "scheduler": self.sched.state_dict(), "step": self.step, "window": self.window,
+                "history": self.history, "config": asdict(self.cfg)}
+
+    def load(self, ckpt: dict) -> None:
+        """Continue from a checkpoint of the same configuration (steps may differ)."""
+        saved = dict(ckpt["config"])
+        mine = asdict(self.cfg)
+        diff = [k for k in mine if k not in ("steps", "out", "checkpoint_every") and saved.get(k) != mine[k]]
+        if diff:
+            raise ValueError("--resume: the checkpoint was trained with different settings: " +
+                             ", ".join(f"{k}={saved.get(k)!r} (now {mine[k]!r})" for k in diff))
+        self.net.load_state_dict(ckpt["model"])
+        self.opt.load_state_dict(ckpt["optimizer"])
+        self.sched.load_state_dict(ckpt["scheduler"])
+        self.step, self.window, self.history = ckpt["step"], list(ckpt["window"]), list(ckpt["history"])
+
+    def save(self) -> Path:
+        """Write ``<out>/checkpoint.pt`` atomically (rank 0 only) and return its path."""
+        path = Path(self.cfg.out) / "checkpoint.pt"
+        if self.rank == 0:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            save_atomic(self.state(), path)
+        return path
+
+
+def train(cfg: TrainConfig, resume: bool = False, rank: int = 0, world: int = 1, progress: bool = True) -> Trainer:
+    """Run (or continue, with ``resume``) training to ``cfg.steps`` steps; returns the trainer.
+
+    A checkpoint is written every ``cfg.checkpoint_every`` steps and at the end; Ctrl-C (or
+    SIGTERM) writes one for the last finished step before stopping.
+    """
+    from tqdm import tqdm
+    trainer = Trainer(cfg, rank, world)
+    path = Path(cfg.out) / "checkpoint.pt"
+    if resume and path.is_file():
+        trainer.load(torch.load(path, weights_only=False))
+    previous = signal.signal(signal.SIGTERM, signal.default_int_handler) if rank == 0 else None
+    bar = tqdm(total=cfg.steps, initial=trainer.step, desc=f"train {cfg.sampler}", unit="step",
+               disable=not progress or rank != 0)
+    try:
+        while trainer.step < cfg.steps:
+            start = time.perf_counter()
+            loss, rays = trainer.train_step()
+            bar.update(1)
+            bar.set_postfix(loss=f"{loss:.3f}", rays_s=f"{rays * world / (time.perf_counter() - start):.0f}")
+            if trainer.step % cfg.checkpoint_every == 0 or trainer.step == cfg.steps:
+                trainer.save()
+    except KeyboardInterrupt:
+        trainer.save()
+        bar.close()
+        print(f"interrupted at step {trainer.step}; checkpoint {path} (continue with --resume)", file=sys.stderr)
+        raise
+    finally:
+        bar.close()
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+    if rank == 0:
+        Path(cfg.out, "train_log.json").write_text(json.dumps({"loss": trainer.history, "config": asdict(cfg)}))
+    return trainer
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``qr-cl train`` / ``python -m qr_cl.train``."""
+    d = TrainConfig(scenes=["-"], out="-")
+    parser.add_argument("scenes", nargs="+", help="scene folders (point_cloud.ply, cameras.json, language_features/)")
+    parser.add_argument("--out", required=True, help="output folder (checkpoint.pt, train_log.json)")
+    parser.add_argument("--steps", type=int, default=d.steps, help=f"optimizer steps (default {d.steps})")
+    parser.add_argument("--batch-scenes", type=int, default=d.batch_scenes,
+                        help="scenes per step, split over ranks (default 1)")
+    parser.add_argument("--views", type=int, default=d.views, help="views per scene per step (default 4)")
+    parser.add_argument("--rays", type=int, default=d.rays, help="rays per view (default 2048)")
+    parser.add_argument("--sampler", choices=SAMPLERS, default=d.sampler, help="feature renderer (default quantile)")
+    parser.add_argument("-k", type=int, default=d.k, help="K of quantile/topk (default 40)")
+    parser.add_argument("--lr", type=float, default=d.lr, help="Adam learning rate (default 1e-3)")
+    parser.add_argument("--temperature", type=float, default=d.temperature, help="loss temperature (default 0.1)")
+    parser.add_argument("--grid-size", type=float, default=d.grid_size, help="voxel size, scene units (default 0.1)")
+    parser.add_argument("--net", choices=sorted(NETS), default=d.net, help="UNet preset (default small)")
+    parser.add_argument("--seed", type=int, default=d.seed)
+    parser.add_argument("--checkpoint-every", type=int, default=d.checkpoint_every, help="steps (default 50)")
+    parser.add_argument("--plateau-interval", type=int, default=d.plateau_interval,
+                        help="steps per ReduceLROnPlateau observation (default 25)")
+    parser.add_argument("--level", type=int, default=d.level, help="LangSplat mask level (default 0)")
+    parser.add_argument("--resume", action="store_true", help="continue from <out>/checkpoint.pt")
+
+
+def config_from_args(args: argparse.Namespace) -> TrainConfig:
+    """A TrainConfig from parsed ``add_arguments`` options."""
+    return TrainConfig(scenes=[str(Path(s).resolve()) for s in args.scenes], out=args.out, steps=args.steps,
+                       batch_scenes=args.batch_scenes, views=args.views, rays=args.rays, sampler=args.sampler,
+                       k=args.k, lr=args.lr, temperature=args.temperature, grid_size=args.grid_size, net=args.net,
+                       seed=args.seed, checkpoint_every=args.checkpoint_every,
+                       plateau_interval=args.plateau_interval, level=args.level)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Train (one process, or one rank of a torchrun job when WORLD_SIZE > 1)."""
+    import torch.distributed as dist
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    rank = int(os.environ.get("RANK", "0"))
+    if world > 1:
+        dist.init_process_group("gloo")
+    try:
+        trainer = train(config_from_args(args), args.resume, rank, world)
+    except KeyboardInterrupt:
+        return 130
+    finally:
+        if world > 1:
+            dist.destroy_process_group()
+    if rank == 0:
+        print(f"trained {trainer.step} steps, final loss {trainer.history[-1]:.4f}; "
+              f"checkpoint {Path(args.out) / 'checkpoint.pt'}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``python -m qr_cl.train`` (e.g. under torchrun)."""
+    parser = argparse.ArgumentParser(prog="python -m qr_cl.train", description=__doc__.split("\n")[0])
+    add_arguments(parser)
+    return run(parser.parse_args(argv))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
