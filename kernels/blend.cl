@@ -9,18 +9,6 @@
    bitwise reproducible. */
 #include "common.h"
 
-#if VW == 1
-typedef float vec_t;
-#define VLOAD(i, p) ((p)[i])
-#define VSTORE(v, i, p) ((p)[i] = (v))
-#else
-#define CAT2(a, b) a##b
-#define CAT(a, b) CAT2(a, b)
-typedef CAT(float, VW) vec_t;
-#define VLOAD(i, p) CAT(vload, VW)(i, p)
-#define VSTORE(v, i, p) CAT(vstore, VW)(v, i, p)
-#endif
-
 /* Forward. Rays as in select.cl (full image tile-major, or a pixel subset); entries of row p
    are [offsets[p], offsets[p] + count[p]). */
 __kernel void blend(__global const int *offsets, __global const int *count,

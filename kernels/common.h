@@ -78,4 +78,20 @@ inline float splat_alpha(float8 s, float px, float py) {
 /* The (k+1)-th of the K equal transmittance boundaries of Q-Render: 1 - (k+1)/(K+1). */
 inline float quantile_boundary(int k, int K) { return 1.f - (float)(k + 1) / (float)(K + 1); }
 
+/* Feature rows in vectors of VW floats (kernels built with -DVW=1, 2, 4, 8 or 16): vec_t,
+   VLOAD(i, p) and VSTORE(v, i, p) load/store the i-th vector of row p. */
+#ifdef VW
+#if VW == 1
+typedef float vec_t;
+#define VLOAD(i, p) ((p)[i])
+#define VSTORE(v, i, p) ((p)[i] = (v))
+#else
+#define CAT2(a, b) a##b
+#define CAT(a, b) CAT2(a, b)
+typedef CAT(float, VW) vec_t;
+#define VLOAD(i, p) CAT(vload, VW)(i, p)
+#define VSTORE(v, i, p) CAT(vstore, VW)(v, i, p)
+#endif
+#endif
+
 #endif

@@ -7,18 +7,6 @@
    what PoCL turns into SIMD code). Feature rows have cstride floats, a multiple of VW * NV. */
 #include "common.h"
 
-#if VW == 1
-typedef float vec_t;
-#define VLOAD(i, p) ((p)[i])
-#define VSTORE(v, i, p) ((p)[i] = (v))
-#else
-#define CAT2(a, b) a##b
-#define CAT(a, b) CAT2(a, b)
-typedef CAT(float, VW) vec_t;
-#define VLOAD(i, p) CAT(vload, VW)(i, p)
-#define VSTORE(v, i, p) CAT(vstore, VW)(v, i, p)
-#endif
-
 #define BATCH 32
 
 /* out[c] = (init ? 0 : out[c]) + sum_j w[j] * features[id[j], c] + bg_scale * background[c]. */
