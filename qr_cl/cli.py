@@ -12,7 +12,9 @@ from pathlib import Path
 
 # Sub-commands implemented in their own modules, each with add_arguments(parser) and run(args).
 DELEGATED = {"demo": ("demo", "the embedded default job (see README)"),
-             "bench": ("benchmark", "kernel benchmark sweeps: JSON, markdown summary and plots")}
+             "bench": ("benchmark", "kernel benchmark sweeps: JSON, markdown summary and plots"),
+             "train": ("train", "train GS-Net through a feature renderer on scene folders"),
+             "eval": ("evaluate", "open-vocabulary 3D segmentation: mIoU/mAcc tables, images, PLYs")}
 
 
 def _cmd_devices(args: argparse.Namespace) -> int:

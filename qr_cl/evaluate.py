@@ -208,6 +208,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """Evaluate every scene, write results.json / results.md and the images; print the table."""
     from tqdm import tqdm
+
+    from .train import torch_threads
     if args.features and len(args.scenes) != 1:
         raise SystemExit("qr-cl eval: --features evaluates exactly one scene")
     out = Path(args.out)
@@ -216,7 +218,8 @@ def run(args: argparse.Namespace) -> int:
     rows = []
     for path in tqdm(args.scenes, desc="eval", unit="scene"):
         scene = load_scene_folder(path, args.level)
-        feats = network_features(ckpt, scene) if ckpt is not None else np.load(args.features).astype(np.float32)
+        with torch_threads(1):
+            feats = network_features(ckpt, scene) if ckpt is not None else np.load(args.features).astype(np.float32)
         gt, source = ground_truth(scene, args.gt, args.knn, args.max_mahalanobis)
         metrics = evaluate_features(scene, feats, gt)
         write_visuals(scene, feats, gt, out / "images", args.views)

@@ -23,6 +23,7 @@ import os
 import signal
 import sys
 import time
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -120,6 +121,19 @@ def step_slots(cfg: TrainConfig, step: int, n_scenes: int) -> list[int]:
     """Scene indices of the ``batch_scenes`` slots of ``step`` (the same on every rank)."""
     rng = np.random.default_rng([cfg.seed, step, 7])
     return rng.choice(n_scenes, cfg.batch_scenes, replace=cfg.batch_scenes > n_scenes).tolist()
+
+
+@contextmanager
+def torch_threads(n: int):
+    """Run the block with ``n`` torch intra-op threads (restored after). One thread is the default
+    for training: PoCL renders with its own threads, and torch's OpenMP workers spin badly when the
+    cores are shared (a 0.7 s step took 60 s with 2 threads on a busy 2-core machine)."""
+    old = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(old)
 
 
 def save_atomic(obj, path: Path) -> None:
@@ -272,6 +286,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="steps per ReduceLROnPlateau observation (default 25)")
     parser.add_argument("--level", type=int, default=d.level, help="LangSplat mask level (default 0)")
     parser.add_argument("--resume", action="store_true", help="continue from <out>/checkpoint.pt")
+    parser.add_argument("--torch-threads", type=int, default=1, help="torch intra-op threads (default 1)")
 
 
 def config_from_args(args: argparse.Namespace) -> TrainConfig:
@@ -291,7 +306,8 @@ def run(args: argparse.Namespace) -> int:
     if world > 1:
         dist.init_process_group("gloo")
     try:
-        trainer = train(config_from_args(args), args.resume, rank, world)
+        with torch_threads(args.torch_threads):
+            trainer = train(config_from_args(args), args.resume, rank, world)
     except KeyboardInterrupt:
         return 130
     finally:

@@ -8,8 +8,14 @@ import torch
 from qr_cl.baseline import fit_free_features
 from qr_cl.data import load_scene_folder
 from qr_cl.loss import contrastive_loss, sample_rays
-from qr_cl.train import TrainConfig, train
+from qr_cl.train import TrainConfig, torch_threads, train
 from synthetic_helpers import tiny_scene
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    with torch_threads(1):
+        yield
 
 
 @pytest.fixture(scope="module")
