@@ -260,6 +260,7 @@ def train(cfg: TrainConfig, resume: bool = False, rank: int = 0, world: int = 1,
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
     if rank == 0:
+        Path(cfg.out).mkdir(parents=True, exist_ok=True)
         Path(cfg.out, "train_log.json").write_text(json.dumps({"loss": trainer.history, "config": asdict(cfg)}))
     return trainer
 
