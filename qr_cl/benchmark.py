@@ -238,7 +238,7 @@ class Sweep:
         device_bytes = plan.splats.nbytes + plan.ids.nbytes + sel.nbytes + feats.nbytes + image.nbytes
         fwd = self._row(scene, "blend-forward", sampler, kk, channels, timing, mean_entries=mean_k,
                         device_bytes=device_bytes, **self._roofline_fields(hit.size, mean_k, channels,
-                                                                           timing["min_s"]))
+                                                                           timing["min_s"], sel.n_rays))
 
         def backward():
             blend_backward(sel, image, channels)
@@ -246,7 +246,7 @@ class Sweep:
         timing = measure(backward, self.rounds)
         self._row(scene, "blend-backward", sampler, kk, channels, timing, mean_entries=mean_k,
                   device_bytes=device_bytes + feats.nbytes,
-                  **self._roofline_fields(hit.size, mean_k, channels, timing["min_s"]))
+                  **self._roofline_fields(hit.size, mean_k, channels, timing["min_s"], sel.n_rays))
         return fwd
 
     def end_to_end(self, scene: BenchScene, sampler: str, k: int, channels: int) -> dict:
@@ -288,10 +288,13 @@ class Sweep:
             return out
         self._row(scene, "blend-forward", "numpy", k, channels, measure(numpy_blend, numpy_rounds, 0))
 
-    def _roofline_fields(self, rays: int, mean_k: float, channels: int, seconds: float) -> dict:
-        """Fractions of this device's limits for a blend whose ``rays`` non-empty rays hold
-        ``mean_k`` entries on average: against the bare coherent gather-blend of the same sizes,
-        and against the analytic roofline max(flops / FMA rate, minimal bytes / bandwidth)."""
+    def _roofline_fields(self, rays: int, mean_k: float, channels: int, seconds: float,
+                         rows: int) -> dict:
+        """Fractions of this device's limits for a blend of ``rows`` output rows whose ``rays``
+        non-empty rays hold ``mean_k`` entries on average: against the bare coherent gather-blend
+        of the non-empty rays, and against the analytic roofline max(flops / FMA rate, minimal
+        bytes / bandwidth), the minimal bytes being every output row written once plus the
+        entries' ids and weights read once."""
         if rays == 0:
             return {"bare_gather_s": 0.0, "fraction_of_bare_gather": 0.0, "fraction_of_roofline": 0.0}
         from .roofline import bare_gather_blend
@@ -300,7 +303,7 @@ class Sweep:
         if key not in self._bare:
             self._bare[key] = bare_gather_blend(self.rt, rays, k, channels)
         flops = 2.0 * rays * mean_k * channels
-        min_bytes = rays * channels * 4 + rays * mean_k * 8
+        min_bytes = rows * channels * 4 + rays * mean_k * 8
         limit = max(flops / self.limits["fma_flops"], min_bytes / self.limits["bandwidth_bytes_s"])
         return {"bare_gather_s": self._bare[key], "fraction_of_bare_gather": self._bare[key] / seconds,
                 "fraction_of_roofline": limit / seconds}
