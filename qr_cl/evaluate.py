@@ -122,10 +122,11 @@ def _render(scene: SceneData, values: np.ndarray, view: int, sampler: str = "qua
 
 def pca_rgb(image: np.ndarray) -> np.ndarray:
     """[H,W,C] feature map -> [H,W,3] in [0,1]: its 3 principal components, 1..99 % stretched."""
-    flat = image.reshape(-1, image.shape[-1]).astype(np.float64)
+    flat = torch.from_numpy(image.reshape(-1, image.shape[-1]).astype(np.float64))
     centred = flat - flat.mean(0)
-    _, _, vt = np.linalg.svd(centred[:: max(1, len(flat) // 4096)], full_matrices=False)
-    proj = centred @ vt[:3].T
+    sample = centred[:: max(1, len(flat) // 2048)]
+    _, vecs = torch.linalg.eigh(sample.T @ sample)  # torch: numpy's LAPACK threads crawl on busy cores
+    proj = (centred @ vecs.flip(1)[:, :3]).numpy()
     lo, hi = np.percentile(proj, 1, axis=0), np.percentile(proj, 99, axis=0)
     return np.clip((proj - lo) / np.maximum(hi - lo, 1e-12), 0, 1).reshape(*image.shape[:2], 3)
 
@@ -222,7 +223,8 @@ def run(args: argparse.Namespace) -> int:
             feats = network_features(ckpt, scene) if ckpt is not None else np.load(args.features).astype(np.float32)
         gt, source = ground_truth(scene, args.gt, args.knn, args.max_mahalanobis)
         metrics = evaluate_features(scene, feats, gt)
-        write_visuals(scene, feats, gt, out / "images", args.views)
+        with torch_threads(1):
+            write_visuals(scene, feats, gt, out / "images", args.views)
         rows.append({"method": "GS-Net" if ckpt is not None else Path(args.features).name, "scene": scene.name,
                      "split": "-", "gt": source, "metrics": metrics})
     means = {s: {k: float(np.nanmean([r["metrics"][s][k] for r in rows])) for k in ("miou", "macc")}

@@ -88,3 +88,17 @@ def test_eval_command_writes_tables_images_and_ply(scene, tmp_path, capsys):
     assert (out / "images" / f"{scene.name}_view001.png").is_file()
     cloud = o3d.io.read_point_cloud(str(out / "images" / f"{scene.name}_segmentation.ply"))
     assert len(cloud.points) == len(data.gaussians) and cloud.has_colors()
+
+
+def test_tiny_demo_writes_the_report(tmp_path, capsys):
+    args = ["demo", "--out", str(tmp_path / "demo"), "--cache", str(tmp_path / "cache"), "--train-scenes", "1",
+            "--gaussians", "2500", "--steps", "3", "--short-steps", "2", "--rays", "64", "--views", "1"]
+    assert main(args) == 0
+    assert "Report:" in capsys.readouterr().out
+    report = (tmp_path / "demo" / "report.md").read_text()
+    for method in ("Q-Render K=40", "Q-Render K=5", "top-K K=40", "top-K K=5", "V-Render", "per-scene baseline"):
+        assert method in report, method
+    assert "held-out" in report and "training" in report
+    res = json.loads((tmp_path / "demo" / "results.json").read_text())
+    assert len(res["rows"]) == 14 and all(0 <= r["metrics"]["19"]["macc"] <= 1 for r in res["rows"])
+    assert (tmp_path / "demo" / "runs" / "gsnet-q40" / "checkpoint.pt").is_file()
