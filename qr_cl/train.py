@@ -311,6 +311,9 @@ def run(args: argparse.Namespace) -> int:
             trainer = train(config_from_args(args), args.resume, rank, world)
     except KeyboardInterrupt:
         return 130
+    except ValueError as exc:
+        print(f"qr-cl train: error: {exc}", file=sys.stderr)
+        return 2
     finally:
         if world > 1:
             dist.destroy_process_group()
