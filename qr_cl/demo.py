@@ -18,7 +18,6 @@ import time
 from pathlib import Path
 
 
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``qr-cl demo``."""
     parser.add_argument("--out", default="qr-cl-demo", help="report folder (default ./qr-cl-demo)")
