@@ -3,24 +3,21 @@ import numpy as np
 from matplotlib.image import imread
 
 from qr_cl.cli import main
+from qr_cl.procedural import procedural_scene
+from qr_cl.scene import save_ply
 
 
-def test_demo_writes_pictures_with_content(tmp_path, capsys):
-    assert main(["demo", "--out", str(tmp_path), "--gaussians", "3000", "--views", "2"]) == 0
-    assert "Report:" in capsys.readouterr().out
-    rgb = imread(tmp_path / "view_000_rgb.png")
-    alpha = imread(tmp_path / "view_001_alpha.png")
-    assert rgb.shape[:2] == (480, 640) and rgb[..., :3].std() > 0.05
-    assert 0.05 < (alpha[..., 0] > 0.5).mean() < 0.95
-    assert (tmp_path / "view_001_depth.png").is_file() and (tmp_path / "procedural.ply").is_file()
-
-
-def test_render_orbit_of_a_saved_scene(tmp_path):
-    assert main(["demo", "--out", str(tmp_path / "d"), "--gaussians", "1000", "--views", "1"]) == 0
+def test_render_orbit_of_a_saved_scene(tmp_path, capsys):
+    save_ply(tmp_path / "scene.ply", procedural_scene(1000))
     out = tmp_path / "r"
-    assert main(["render", str(tmp_path / "d" / "procedural.ply"), "--orbit", "2", "--width", "64",
+    assert main(["render", str(tmp_path / "scene.ply"), "--orbit", "2", "--width", "64",
                  "--height", "48", "--out", str(out)]) == 0
-    assert imread(out / "001_rgb.png").shape[:2] == (48, 64)
+    assert "rendered 2 views" in capsys.readouterr().out
+    rgb = imread(out / "001_rgb.png")
+    alpha = imread(out / "001_alpha.png")[..., 0]
+    assert rgb.shape[:2] == (48, 64) and rgb[..., :3].std() > 0.05
+    assert 0.05 < (alpha > 0.5).mean() < 0.95
+    assert (out / "000_depth.png").is_file()
 
 
 def test_render_bad_file_is_a_one_line_error(tmp_path, capsys):
