@@ -316,8 +316,8 @@ class Sweep:
 def _config(mode: str) -> dict:
     """Sweep sizes for mode "smoke" (seconds; the default test run), "quick" (< 3 min) or "full"."""
     if mode == "smoke":
-        return {"resolutions": [(64, 48)], "ks": [10], "cs": [3, 16], "k_sweep_c": 16, "c_sweep_k": 10,
-                "synthetic": [], "layers": [8, 16, 32], "layer_cs": [4, 16], "rounds": 1,
+        return {"resolutions": [(64, 48), (32, 24)], "ks": [10], "cs": [3, 16], "k_sweep_c": 16,
+                "c_sweep_k": 10, "synthetic": [1000], "layers": [8, 16, 32], "layer_cs": [4, 16], "rounds": 1,
                 "looped_rounds": 1, "numpy_rounds": 1, "real": False}
     if mode == "quick":
         return {"resolutions": [(640, 480)], "ks": [10, 40], "cs": [3, 64, 512], "k_sweep_c": 512,

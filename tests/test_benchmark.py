@@ -25,6 +25,8 @@ def test_report_has_every_stage_and_baseline(report_dir):
                      ("looped-3ch", "volume_fused"), ("blend-forward", "torch-embedding_bag"),
                      ("blend-forward", "numpy")]:
         assert expected in stages
+    sizes = {(r["scene"], r["width"]) for r in report["results"]}
+    assert {("synthetic-2k", 64), ("synthetic-2k", 32), ("synthetic-1k", 64)} <= sizes
     for row in report["results"]:
         assert 0 < row["min_s"] <= row["median_s"] and row["rounds"] >= 1 and row["spread_s"] >= 0
     assert report["limits"]["bandwidth_bytes_s"] > 1e8 and report["limits"]["fma_flops"] > 1e8
