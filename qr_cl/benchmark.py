@@ -515,6 +515,7 @@ def write_plots(report: dict, out: Path) -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import NullFormatter
     rows = report["results"]
     blend = [r for r in rows if r["stage"] == "blend-forward" and r["sampler"] in _samplers()]
     if not blend:
@@ -585,6 +586,8 @@ def write_plots(report: dict, out: Path) -> None:
     axes[1].set(xscale="log", yscale="log", xlabel="C", title=f"N={comp['N_fixed']}")
     for a in axes:
         a.legend(fontsize=7)
+        a.xaxis.set_minor_formatter(NullFormatter())
+        a.yaxis.set_minor_formatter(NullFormatter())
     fig.tight_layout()
     fig.savefig(out / "complexity.png", dpi=110)
     plt.close(fig)
