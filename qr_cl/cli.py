@@ -1,4 +1,4 @@
-"""The ``qr-cl`` command line: devices, render, demo."""
+"""The ``qr-cl`` command line: devices and render here; demo, train, eval and bench delegated to their modules."""
 from __future__ import annotations
 
 import argparse

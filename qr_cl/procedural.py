@@ -1,4 +1,4 @@
-"""A small procedural scene of Gaussians made in code (the embedded default: no files needed)."""
+"""A small procedural scene of Gaussians made in code (no files needed): used by `qr-cl bench`, tests and examples."""
 from __future__ import annotations
 
 import numpy as np
