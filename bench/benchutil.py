@@ -1,11 +1,7 @@
 """Helpers shared by the benchmarks (imported by name: bench/ is on sys.path under pytest)."""
 from __future__ import annotations
 
-import os
-from pathlib import Path
-
-# the real scenes, as in tests/conftest.py: QR_CL_DATA or ../shared/data beside the repository
-DATA = Path(os.environ.get("QR_CL_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
+from qr_cl.benchmark import DATA  # noqa: F401  (the real scenes' folder, one definition)
 
 
 def run(benchmark, fn, full: bool, rounds: int = 5):

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 REPORT_VERSION = 1
+# The real scenes: $QR_CL_DATA, else ../shared/data beside a source checkout (tests use it too).
 DATA = Path(os.environ.get("QR_CL_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
 
 

@@ -1,14 +1,12 @@
 """Shared fixtures: the real scenes of ../shared/data (skipped cleanly when absent)."""
 from __future__ import annotations
 
-import os
 import warnings
 from pathlib import Path
 
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
-DATA = Path(os.environ.get("QR_CL_DATA", REPO.parent / "shared" / "data"))
+from qr_cl.benchmark import DATA  # $QR_CL_DATA or ../shared/data
 
 
 @pytest.fixture(scope="session")
