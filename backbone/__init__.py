@@ -1,6 +1,6 @@
 """GS-Net's 3D network in plain PyTorch: Gaussian voxelization, a sparse voxel UNet, GSNet."""
 
-from backbone.conv import (
+from .conv import (
     DownsampleConv3d,
     SparseBatchNorm,
     SparseLinear,
@@ -9,11 +9,11 @@ from backbone.conv import (
     UpsampleConv3d,
     sparse_conv,
 )
-from backbone.gaussians import SH_C0, GaussianSet, quat_to_rotmat, rgb_from_sh_dc
-from backbone.gsnet import GSNet
-from backbone.sparse import KernelMap, KernelMapCache, SparseTensor, kernel_offsets, pack_keys, unpack_keys
-from backbone.unet import BasicBlock, SparseUNet, UNetConfig, minkunet14, minkunet18
-from backbone.voxelize import VoxelBatch, VoxelConfig, devoxelize, voxelize
+from .gaussians import SH_C0, GaussianSet, quat_to_rotmat, rgb_from_sh_dc
+from .gsnet import GSNet
+from .sparse import KernelMap, KernelMapCache, SparseTensor, kernel_offsets, pack_keys, unpack_keys
+from .unet import BasicBlock, SparseUNet, UNetConfig, minkunet14, minkunet18
+from .voxelize import VoxelBatch, VoxelConfig, devoxelize, voxelize
 
 __all__ = [
     "SH_C0",

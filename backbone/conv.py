@@ -22,7 +22,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 from torch.autograd.function import once_differentiable
 
-from backbone.sparse import KernelMap, SparseTensor
+from .sparse import KernelMap, SparseTensor
 
 
 def _apply_map(

@@ -7,10 +7,10 @@ from typing import Sequence
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from backbone.gaussians import GaussianSet
-from backbone.sparse import SparseTensor
-from backbone.unet import SparseUNet, UNetConfig, minkunet14
-from backbone.voxelize import Reduce, VoxelBatch, VoxelConfig, devoxelize, voxelize
+from .gaussians import GaussianSet
+from .sparse import SparseTensor
+from .unet import SparseUNet, UNetConfig, minkunet14
+from .voxelize import Reduce, VoxelBatch, VoxelConfig, devoxelize, voxelize
 
 
 class GSNet(nn.Module):

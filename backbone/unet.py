@@ -14,7 +14,7 @@ from dataclasses import dataclass, replace
 import torch
 from torch import nn
 
-from backbone.conv import (
+from .conv import (
     DownsampleConv3d,
     SparseBatchNorm,
     SparseLinear,
@@ -22,7 +22,7 @@ from backbone.conv import (
     SubmanifoldConv3d,
     UpsampleConv3d,
 )
-from backbone.sparse import SparseTensor
+from .sparse import SparseTensor
 
 
 @dataclass(frozen=True)

@@ -15,8 +15,8 @@ from typing import Literal, Sequence
 import torch
 from torch import Tensor
 
-from backbone.gaussians import GaussianSet
-from backbone.sparse import MAX_BATCH, KernelMapCache, pack_keys, unpack_keys
+from .gaussians import GaussianSet
+from .sparse import MAX_BATCH, KernelMapCache, pack_keys, unpack_keys
 
 SampleShape = Literal["center", "volume"]
 Reduce = Literal["max", "mean"]

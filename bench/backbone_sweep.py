@@ -24,7 +24,7 @@ from typing import Callable
 
 import torch
 
-from backbone import KernelMapCache, SparseTensor, SparseUNet, SubmanifoldConv3d, minkunet14
+from qr_cl.backbone import KernelMapCache, SparseTensor, SparseUNet, SubmanifoldConv3d, minkunet14
 
 UNET_IN_CHANNELS = 7
 

@@ -1,8 +1,6 @@
 """Helpers shared by the benchmarks (imported by name: bench/ is on sys.path under pytest)."""
 from __future__ import annotations
 
-from qr_cl.benchmark import DATA  # noqa: F401  (the real scenes' folder, one definition)
-
 
 def run(benchmark, fn, full: bool, rounds: int = 5):
     """Time ``fn`` (which must finish its OpenCL queue) with warm-up in full mode, once in smoke."""

@@ -6,7 +6,6 @@ import os
 import warnings
 
 import pytest
-from benchutil import DATA
 
 
 @pytest.fixture(scope="session")
@@ -18,12 +17,12 @@ def bench_full(request) -> bool:
 
 
 @pytest.fixture(scope="session")
-def fox_or_procedural(bench_full):
+def fox_or_procedural(bench_full, data_dir):
     """(Gaussians, width, height): the real fox at 640x480 in full mode, else a tiny procedural
     scene at 64x48 (also when ../shared/data is missing)."""
     import qr_cl
-    from qr_cl.procedural import procedural_scene
-    fox = DATA / "wakufactory-fox" / "fox.ply"
+    from qr_cl.app.procedural import procedural_scene
+    fox = data_dir / "wakufactory-fox" / "fox.ply"
     if bench_full and fox.is_file():
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")

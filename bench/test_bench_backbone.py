@@ -18,7 +18,7 @@ import os
 import pytest
 import torch
 
-from backbone import KernelMapCache, SparseUNet, minkunet14
+from qr_cl.backbone import KernelMapCache, SparseUNet, minkunet14
 from backbone_sweep import (
     UNET_IN_CHANNELS,
     ours_conv_step,

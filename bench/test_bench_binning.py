@@ -1,6 +1,6 @@
 """Binning building blocks: pyopencl's scan and RadixSort vs numpy on the host (CPU device).
 
-This measurement is why ``raster.sort_pairs`` sorts with numpy when the device is the CPU:
+This measurement is why ``qr_cl.stages.binning.sort_pairs`` sorts with numpy when the device is the CPU:
 on the fox scene at 640x480 (105k keys) pyopencl's RadixSort took ~17 ms and numpy's stable
 argsort, copies included, ~4.6 ms. pyopencl's scan (~0.27 ms, numpy 0.21 ms) is kept: it runs
 on every device.
@@ -12,9 +12,10 @@ import pyopencl.array as cla
 import pytest
 
 from benchutil import run
-from qr_cl import raster
-from qr_cl.camera import orbit_cameras
-from qr_cl.device import runtime
+from qr_cl.runtime import exclusive_scan, runtime, to_device
+from qr_cl.scene import orbit_cameras
+from qr_cl.stages import project, tile_grid
+from qr_cl.stages.binning import radix_sorter
 
 
 @pytest.fixture(scope="module")
@@ -23,23 +24,22 @@ def keys(fox_or_procedural):
     g, w, h = fox_or_procedural
     rt = runtime()
     cam = orbit_cameras(g.means, 8, w, h)[1]
-    dev = [raster.to_device(rt, a) for a in (g.means, g.quats, g.scales, g.opacities)]
-    splats, _, rects, touched = raster.project(rt, *dev, cam.viewmat, cam.K, w, h, 0.01, 1e10)
-    offsets = cla.empty_like(touched)
-    raster.exclusive_scan(rt.context)(touched, offsets)
+    dev = [to_device(rt, a) for a in (g.means, g.quats, g.scales, g.opacities)]
+    splats, _, rects, touched = project(rt, *dev, cam.viewmat, cam.K, w, h, 0.01, 1e10)
+    offsets = exclusive_scan(rt, touched, cla.empty_like(touched))
     m = int(touched.get().sum())
     keys, values = cla.empty(rt.queue, m, np.uint64), cla.empty(rt.queue, m, np.int32)
-    tiles_x = (w + 15) // 16
-    rt.kernel("binning.cl", "emit_keys")(rt.queue, (len(g),), None, np.int32(len(g)), rects.data,
-                                         offsets.data, splats.data, np.int32(tiles_x), keys.data, values.data)
-    n_tiles = tiles_x * ((h + 15) // 16)
+    tiles_x, tiles_y = tile_grid(w, h)
+    rt.launch("emit_keys", len(g), n=len(g), rects=rects, offsets=offsets, splats=splats,
+              tiles_x=tiles_x, keys=keys, values=values)
+    n_tiles = tiles_x * tiles_y
     return touched, keys, values, 32 + int(n_tiles - 1).bit_length()
 
 
 def test_scan_pyopencl(benchmark, keys, bench_full):
     rt, (touched, *_) = runtime(), keys
     out = cla.empty_like(touched)
-    run(benchmark, lambda: (raster.exclusive_scan(rt.context)(touched, out), rt.queue.finish()), bench_full)
+    run(benchmark, lambda: (exclusive_scan(rt, touched, out), rt.queue.finish()), bench_full)
     np.testing.assert_array_equal(out.get(), np.cumsum(touched.get()) - touched.get())
 
 
@@ -51,7 +51,7 @@ def test_scan_numpy_host(benchmark, keys, bench_full):
 
 def test_sort_pyopencl_radix(benchmark, keys, bench_full):
     rt, (_, k, v, bits) = runtime(), keys
-    sorter = raster._radix_sort(rt.context)
+    sorter = radix_sorter(rt.context)
 
     def sort():
         out = sorter(k, v, key_bits=bits)

@@ -10,8 +10,8 @@ import pytest
 
 import qr_cl
 from benchutil import run
-from qr_cl import reference as ref
-from qr_cl.camera import orbit_cameras
+from qr_cl.stages import sh_ref, vrender_ref
+from qr_cl.scene import orbit_cameras
 
 
 @pytest.fixture(scope="module")
@@ -37,8 +37,8 @@ def test_render_opencl(benchmark, setup, bench_full, what):
 def test_render_numpy_reference(benchmark, setup, bench_full, what):
     g, cam, feats = setup
     benchmark.group = f"render {what}"
-    f = ref.sh_to_rgb(g.means, g.sh, cam.position) if what == "rgb" else feats[what]
-    img, alpha, *_ = run(benchmark, lambda: ref.render(g.means, g.quats, g.scales, g.opacities, f,
+    f = sh_ref.sh_to_rgb(g.means, g.sh, cam.position) if what == "rgb" else feats[what]
+    img, alpha, *_ = run(benchmark, lambda: vrender_ref.render(g.means, g.quats, g.scales, g.opacities, f,
                                                        cam.viewmat, cam.K, cam.width, cam.height),
                          bench_full, rounds=1)
     assert float(alpha.max()) > 0

@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 
 import qr_cl
-from qr_cl import reference as ref
-from qr_cl.camera import load_layout_instance
+from qr_cl.stages import sh_ref, vrender_ref
+from qr_cl.scene import load_layout_instance
 
 
 def scenes(data: Path):
@@ -47,11 +47,11 @@ def main() -> None:
         for label, feats in (("rgb", None), ("512-D", rng.random((len(g), 512), dtype=np.float32))):
             if feats is None:
                 (img, alpha, meta), t_cl = timed(lambda: qr_cl.rasterize(*args, g.sh, *view, sh_degree=0))
-                feats = ref.sh_to_rgb(g.means, g.sh, cam.position)
+                feats = sh_ref.sh_to_rgb(g.means, g.sh, cam.position)
             else:
                 (img, alpha, meta), t_cl = timed(lambda: qr_cl.rasterize(*args, feats, *view))
-            (full, full_alpha, _, proj), t_ref = timed(lambda: ref.render(*args, feats, *view))
-            same_lists, *_ = ref.vrender(meta, meta["tile_ranges"], meta["flatten_ids"], feats,
+            (full, full_alpha, _, proj), t_ref = timed(lambda: vrender_ref.render(*args, feats, *view))
+            same_lists, *_ = vrender_ref.vrender(meta, meta["tile_ranges"], meta["flatten_ids"], feats,
                                          cam.width, cam.height)
             img = img.numpy()
             vis = (proj["radii"] > 0) & (meta["radii"] > 0)

@@ -1,11 +1,10 @@
-/* Shared math of the qr-cl kernels: 3DGS conventions (see NOTES.md / the original 3DGS). */
+/* Shared math of the qr-cl kernels: 3DGS conventions (see NOTES.md / the original 3DGS).
+
+   The constants TILE (tile side in px), ALPHA_MIN (smaller alphas are skipped), ALPHA_MAX (alpha
+   clamp), T_MIN (V-Render stops before T would drop to it) and the SH basis constants SH_C0,
+   SH_C1, SH_C2_0..4, SH_C3_0..6 are defined by the build (-D), from qr_cl/runtime/constants.py. */
 #ifndef QR_CL_COMMON_H
 #define QR_CL_COMMON_H
-
-#define TILE 16                      /* tiles are TILE x TILE pixels */
-#define ALPHA_MIN (1.0f / 255.0f)    /* Gaussians with a smaller alpha are skipped */
-#define ALPHA_MAX 0.99f              /* alpha is clamped here */
-#define T_MIN 1e-4f                  /* V-Render stops before T would drop to this */
 
 /* Rotation matrix (row-major, 9 floats) of a unit quaternion q = (w, x, y, z). */
 inline void quat_to_rotmat(float4 q, float *r) {
@@ -27,22 +26,6 @@ inline void mat3_mul(const float *a, const float *b, float *c) {
 inline float splat_sigma(float a, float b, float c, float dx, float dy) {
     return 0.5f * (a * dx * dx + c * dy * dy) + b * dx * dy;
 }
-
-/* Real spherical-harmonic basis constants (original 3DGS computeColorFromSH). */
-#define SH_C0 0.28209479177387814f
-#define SH_C1 0.4886025119029199f
-#define SH_C2_0 1.0925484305920792f
-#define SH_C2_1 -1.0925484305920792f
-#define SH_C2_2 0.31539156525252005f
-#define SH_C2_3 -1.0925484305920792f
-#define SH_C2_4 0.5462742152960396f
-#define SH_C3_0 -0.5900435899266435f
-#define SH_C3_1 2.890611442640554f
-#define SH_C3_2 -0.4570457994644658f
-#define SH_C3_3 0.3731763325901154f
-#define SH_C3_4 -0.4570457994644658f
-#define SH_C3_5 1.445305721320277f
-#define SH_C3_6 -0.5900435899266435f
 
 /* ---- helpers of the selection and blend kernels (select.cl, blend.cl) ---- */
 

@@ -1,8 +1,15 @@
-"""qr-cl: Quantile Rendering and GS-Net on 3D Gaussian Splatting, with OpenCL kernels."""
-from .camera import Camera, load_cameras, look_at, orbit_cameras
-from .render import rasterize
-from .scene import Gaussians, SceneFormatError, load_ply, load_scene, load_splat, save_ply
+"""qr-cl: Quantile Rendering and GS-Net on 3D Gaussian Splatting, with OpenCL kernels.
 
-__all__ = ["Camera", "Gaussians", "SceneFormatError", "load_cameras", "load_ply", "load_scene",
-           "load_splat", "look_at", "orbit_cameras", "rasterize", "save_ply"]
+Layers, bottom to top: ``runtime`` (OpenCL device, launcher, memory, constants) -> ``scene``
+(Gaussians, files, cameras) -> ``stages`` (one kernel each, beside its numpy twin) -> ``render``
+(rasterize, autograd, cache) -> ``backbone`` (GS-Net's sparse UNet) -> ``app`` (data, training,
+evaluation, demo, bench, CLI).
+"""
+from .render import SelectionCache, rasterize, render_volume_fused
+from .scene import (Camera, Gaussians, SceneFormatError, load_cameras, load_ply, load_scene,
+                    load_splat, look_at, orbit_cameras, save_ply)
+
+__all__ = ["Camera", "Gaussians", "SceneFormatError", "SelectionCache", "load_cameras", "load_ply",
+           "load_scene", "load_splat", "look_at", "orbit_cameras", "rasterize",
+           "render_volume_fused", "save_ply"]
 __version__ = "0.1.0"

@@ -1,20 +1,11 @@
-"""Shared fixtures: the real scenes of ../shared/data (skipped cleanly when absent)."""
+"""Shared fixtures: the real scenes (``shared_data`` in the root conftest.py; skipped cleanly when
+absent) and a random scene."""
 from __future__ import annotations
 
 import warnings
 from pathlib import Path
 
 import pytest
-
-from qr_cl.benchmark import DATA  # $QR_CL_DATA or ../shared/data
-
-
-@pytest.fixture(scope="session")
-def shared_data() -> Path:
-    """The folder with the real scenes; tests that use it skip when it is missing."""
-    if not (DATA / "wakufactory-fox" / "fox.ply").is_file():
-        pytest.skip(f"real scenes not found in {DATA} (set QR_CL_DATA)")
-    return DATA
 
 
 def _load(path: Path):
@@ -34,7 +25,7 @@ def fox(shared_data):
 def donut(shared_data):
     """(Gaussians, cameras) of the donut scene, placed by its V3DG layout instance."""
     import qr_cl
-    from qr_cl.camera import load_layout_instance
+    from qr_cl.scene import load_layout_instance
     layout = shared_data / "v3dg-donut" / "_SingleDonut.json"
     scale, quat, translation = load_layout_instance(layout)
     g = _load(shared_data / "v3dg-donut" / "donut_fused.ply").transformed(scale, quat, translation)

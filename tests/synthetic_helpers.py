@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from qr_cl.synthetic import SyntheticConfig, synthetic_scene
+from qr_cl.app.synthetic import SyntheticConfig, synthetic_scene
 
 
 def tiny_config(seed: int = 0, **overrides) -> SyntheticConfig:

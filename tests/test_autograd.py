@@ -6,10 +6,10 @@ import pytest
 import torch
 
 import qr_cl
-from qr_cl import reference as ref
-from qr_cl.autograd import blend
-from qr_cl.raster import rasterize_plan
-from qr_cl.samplers import select
+from qr_cl.stages import select_ref
+from qr_cl.render import blend
+from qr_cl.render import rasterize_plan
+from qr_cl.stages import select
 
 
 def torch_reference(h: dict, features: torch.Tensor, background=None) -> torch.Tensor:
@@ -37,7 +37,7 @@ def test_gradients_equal_reference(random_scene, sampler, k, with_pixels):
 
     plan_meta = meta
     rays = pixels if with_pixels else np.stack(np.meshgrid(np.arange(w), np.arange(h)), -1).reshape(-1, 2)
-    h_ref = ref.select(plan_meta, plan_meta["tile_ranges"], meta["selection"].plan.ids.get(), rays, w, sampler, k)
+    h_ref = select_ref.select(plan_meta, plan_meta["tile_ranges"], meta["selection"].plan.ids.get(), rays, w, sampler, k)
     f_ref = features.detach().clone().requires_grad_(True)
     b_ref = background.detach().clone().requires_grad_(True)
     want = torch_reference(h_ref, f_ref, b_ref)
@@ -79,7 +79,7 @@ def test_no_geometry_gradients(random_scene):
 def test_fused_volume_without_grad_matches_selection_path(random_scene):
     m, q, s, o, v, K, w, h = random_scene
     features = torch.randn(len(m), 8)
-    fused, alpha_f, meta_f = qr_cl.rasterize(m, q, s, o, features, v, K, w, h, sampler="volume")
+    fused, alpha_f, meta_f = qr_cl.render_volume_fused(m, q, s, o, features, v, K, w, h)
     graded, alpha_g, meta_g = qr_cl.rasterize(m, q, s, o, features.requires_grad_(True), v, K, w, h)
     assert "depth" in meta_f and "selection" in meta_g
     torch.testing.assert_close(graded.detach(), fused, rtol=1e-6, atol=1e-6)

@@ -4,14 +4,14 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from backbone.conv import (
+from qr_cl.backbone.conv import (
     DownsampleConv3d,
     SparseBatchNorm,
     SubmanifoldConv3d,
     UpsampleConv3d,
     sparse_conv,
 )
-from backbone.sparse import SparseTensor
+from qr_cl.backbone.sparse import SparseTensor
 
 GRID = 8
 BATCH = 2

@@ -4,7 +4,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from backbone import GaussianSet, GSNet, SparseTensor, SparseUNet, VoxelConfig, devoxelize, minkunet14, minkunet18
+from qr_cl.backbone import GaussianSet, GSNet, SparseTensor, SparseUNet, VoxelConfig, devoxelize, minkunet14, minkunet18
 
 SMALL = dict(stem_channels=8, stem_kernel=3, enc_channels=(8, 16, 16), enc_blocks=(1, 1, 1), dec_channels=(16, 8, 8), dec_blocks=(1, 1, 1))
 

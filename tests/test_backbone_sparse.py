@@ -5,7 +5,7 @@ import itertools
 import pytest
 import torch
 
-from backbone.sparse import (
+from qr_cl.backbone.sparse import (
     COORD_LIMIT,
     MAX_BATCH,
     KernelMapCache,

@@ -5,8 +5,8 @@ import math
 import pytest
 import torch
 
-from backbone.gaussians import SH_C0, GaussianSet, quat_to_rotmat, rgb_from_sh_dc
-from backbone.voxelize import VoxelConfig, devoxelize, voxelize
+from qr_cl.backbone.gaussians import SH_C0, GaussianSet, quat_to_rotmat, rgb_from_sh_dc
+from qr_cl.backbone.voxelize import VoxelConfig, devoxelize, voxelize
 
 
 def random_gaussians(

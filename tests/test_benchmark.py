@@ -3,8 +3,8 @@ import json
 
 import pytest
 
-from qr_cl import benchmark
-from qr_cl.cli import main
+from qr_cl.app import benchmark
+from qr_cl.app.cli import main
 
 
 @pytest.fixture(scope="module")

@@ -5,11 +5,12 @@ import numpy as np
 import pyopencl.array as cla
 import pytest
 
-from qr_cl import reference as ref
-from qr_cl.blend import blend_backward, blend_forward, transpose
-from qr_cl.raster import rasterize_plan
-from qr_cl.samplers import select
-from qr_cl.vrender import channel_layout, padded_rows, render_fused
+from qr_cl.stages import blend_ref
+from qr_cl.stages import blend_backward, blend_forward
+from qr_cl.render import rasterize_plan
+from qr_cl.stages import select
+from qr_cl.runtime import channel_layout, padded_rows
+from qr_cl.stages import render_fused
 
 RTOL = 1e-5
 
@@ -40,8 +41,8 @@ def test_forward_and_backward_equal_reference(plan, sampler, k, channels):
     sel = select(plan, sampler, k)
     h = sel.host()
     image = blend_forward(sel, device_rows(plan, features), channels, background).get()[:, :channels]
-    scale = ref.blend(h["ids"], np.abs(h["weights"]), np.abs(features), h["t_rem"], np.abs(background))
-    assert_rows_close(image, ref.blend(h["ids"], h["weights"], features, h["t_rem"], background),
+    scale = blend_ref.blend(h["ids"], np.abs(h["weights"]), np.abs(features), h["t_rem"], np.abs(background))
+    assert_rows_close(image, blend_ref.blend(h["ids"], h["weights"], features, h["t_rem"], background),
                       scale.max(axis=1, keepdims=True))
 
     dimage = rng.standard_normal((sel.n_rays, channels)).astype(np.float32)
@@ -67,7 +68,7 @@ def test_backward_is_deterministic(plan):
 
 def test_transpose_groups_entries_by_gaussian(plan):
     sel = select(plan, "quantile", 6)
-    cursor, t_ray, t_w, chunks = transpose(sel)
+    cursor, t_ray, t_w, chunks = sel.transpose()
     ends = cursor.get()[chunks - 1::chunks]
     h = sel.host()
     counts = np.bincount(h["ids"][h["ids"] >= 0], minlength=sel.n_gaussians)

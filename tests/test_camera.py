@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 import qr_cl
-from qr_cl.camera import load_layout_instance, orbit_cameras
+from qr_cl.scene import load_layout_instance, orbit_cameras
 from qr_cl.scene import SceneFormatError
 
 

@@ -7,8 +7,8 @@ import shutil
 import numpy as np
 import pytest
 
-from qr_cl.data import SceneDataError, load_scene_folder, read_labelled_points
-from qr_cl.synthetic import synthetic_scene, write_labelled_points
+from qr_cl.app.data import SceneDataError, load_scene_folder, read_labelled_points
+from qr_cl.app.synthetic import synthetic_scene, write_labelled_points
 from synthetic_helpers import tiny_config
 
 

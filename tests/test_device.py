@@ -4,7 +4,7 @@ from types import SimpleNamespace
 import pyopencl as cl
 import pytest
 
-from qr_cl import device
+from qr_cl.runtime import device
 
 
 def test_cpu_spec_selects_a_cpu_device(monkeypatch):

@@ -6,12 +6,12 @@ import json
 import numpy as np
 import pytest
 
-from qr_cl.cli import main
-from qr_cl.data import load_scene_folder
-from qr_cl.evaluate import evaluate_features, ground_truth, pseudo_labels
-from qr_cl.metrics import confusion_matrix, miou_macc
+from qr_cl.app.cli import main
+from qr_cl.app.data import load_scene_folder
+from qr_cl.app.evaluate import evaluate_features, ground_truth, pseudo_labels
+from qr_cl.app.metrics import confusion_matrix, miou_macc
 from qr_cl.scene import Gaussians
-from qr_cl.synthetic import class_prototypes
+from qr_cl.app.synthetic import class_prototypes
 from synthetic_helpers import tiny_config, tiny_scene
 
 

@@ -4,12 +4,13 @@ import pytest
 import torch
 
 import qr_cl
-from qr_cl import reference as ref
-from qr_cl.camera import look_at, orbit_cameras
-from qr_cl.device import runtime
-from qr_cl.raster import rasterize_plan, to_device
+from qr_cl.stages import binning_ref, project_ref, sh_ref, vrender_ref
+from qr_cl.scene import look_at, orbit_cameras
+from qr_cl.runtime import runtime
+from qr_cl.render import rasterize_plan
+from qr_cl.runtime import to_device
 from qr_cl.scene import Gaussians
-from qr_cl.vrender import sh_colors
+from qr_cl.stages import sh_colors
 
 W, H = 96, 72
 
@@ -50,10 +51,11 @@ def assert_projection_matches(meta, proj):
 def render_both(g, features, cam, background=None):
     """The kernel render, and the reference V-Render of the kernel's own projection and tile
     lists (so the blend is compared without projection rounding; those are tested apart)."""
-    img, alpha, meta = qr_cl.rasterize(g.means, g.quats, g.scales, g.opacities, features,
-                                       cam.viewmat, cam.K, cam.width, cam.height, background=background)
-    proj = ref.project(g.means, g.quats, g.scales, g.opacities, cam.viewmat, cam.K, cam.width, cam.height)
-    rimg, ralpha, rdepth = ref.vrender(meta, meta["tile_ranges"], meta["flatten_ids"], features,
+    img, alpha, meta = qr_cl.render_volume_fused(g.means, g.quats, g.scales, g.opacities, features,
+                                                 cam.viewmat, cam.K, cam.width, cam.height,
+                                                 background=background)
+    proj = project_ref.project(g.means, g.quats, g.scales, g.opacities, cam.viewmat, cam.K, cam.width, cam.height)
+    rimg, ralpha, rdepth = vrender_ref.vrender(meta, meta["tile_ranges"], meta["flatten_ids"], features,
                                        cam.width, cam.height, background)
     return (img.numpy(), alpha.numpy(), meta), (rimg, ralpha, rdepth, proj)
 
@@ -72,8 +74,8 @@ def test_projection_matches_reference_on_hostile_scene():
 def test_binning_matches_reference():
     g, cam = hostile_scene(seed=1), origin_camera()
     plan = rasterize_plan(g.means, g.quats, g.scales, g.opacities, cam.viewmat, cam.K, W, H)
-    proj = ref.project(g.means, g.quats, g.scales, g.opacities, cam.viewmat, cam.K, W, H)
-    ranges, ids = ref.bin_and_sort(proj, W, H)
+    proj = project_ref.project(g.means, g.quats, g.scales, g.opacities, cam.viewmat, cam.K, W, H)
+    ranges, ids = binning_ref.bin_and_sort(proj, W, H)
     assert plan.n_keys == len(ids) == proj["tiles_touched"].sum()
     np.testing.assert_array_equal(plan.ranges.get(), ranges)
     np.testing.assert_array_equal(plan.ids.get()[:plan.n_keys], ids)
@@ -106,7 +108,7 @@ def test_sh_colours_match_reference(degree):
     campos = np.array([0.3, -0.2, -1.0])
     rt = runtime()
     rgb = sh_colors(rt, to_device(rt, g.means), g.sh, campos).get()
-    np.testing.assert_allclose(rgb[:, :3], ref.sh_to_rgb(g.means, g.sh, campos), atol=1e-5)
+    np.testing.assert_allclose(rgb[:, :3], sh_ref.sh_to_rgb(g.means, g.sh, campos), atol=1e-5)
     assert (rgb[:, 3] == 0).all()
 
 
@@ -115,8 +117,8 @@ def test_rgb_render_from_sh_uses_the_view_direction():
     cam = origin_camera()
     img, _, _ = qr_cl.rasterize(g.means, g.quats, g.scales, g.opacities, torch.from_numpy(g.sh),
                                 cam.viewmat, cam.K, W, H, sh_degree=2)
-    rgb = ref.sh_to_rgb(g.means, g.sh, cam.position)
-    rimg, *_ = ref.render(g.means, g.quats, g.scales, g.opacities, rgb, cam.viewmat, cam.K, W, H)
+    rgb = sh_ref.sh_to_rgb(g.means, g.sh, cam.position)
+    rimg, *_ = vrender_ref.render(g.means, g.quats, g.scales, g.opacities, rgb, cam.viewmat, cam.K, W, H)
     assert np.abs(img.numpy() - rimg).max() < 1e-4
 
 
@@ -159,7 +161,7 @@ def test_real_scenes_match_reference(request, scene, channels):
     assert (ralpha > 0.5).mean() > 0.05
     # End to end against the all-reference pipeline (float64 projection): only pixels where an
     # alpha lands within rounding of 1/255 (or T of 1e-4) may differ by more than 1e-4.
-    full, *_ = ref.render(g.means, g.quats, g.scales, g.opacities, features, cam.viewmat, cam.K,
+    full, *_ = vrender_ref.render(g.means, g.quats, g.scales, g.opacities, features, cam.viewmat, cam.K,
                           cam.width, cam.height)
     differing = (np.abs(img - full).max(-1) > 1e-4).mean()
     assert differing < 1e-3, f"{differing:.2%} of pixels differ from the float64 pipeline"

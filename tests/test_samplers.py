@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 
 import qr_cl
-from qr_cl import reference as ref
-from qr_cl.raster import rasterize_plan
-from qr_cl.samplers import (Selection, plot_transmittance_profiles, select,
-                            transmittance_profile)
+from qr_cl.stages import blend_ref, select_ref
+from qr_cl.render import rasterize_plan
+from qr_cl.app.images import plot_transmittance_profiles
+from qr_cl.stages import Selection, select, transmittance_profile
 
 RTOL = 1e-5
 
@@ -31,7 +31,7 @@ def compare(plan, sel: Selection, pixels: np.ndarray, sampler: str, k: int) -> i
     many rays differ (their ids or counts)."""
     meta = plan.meta()
     got = sel.host()
-    want = ref.select(meta, meta["tile_ranges"], plan.ids.get(), pixels, plan.width, sampler, k)
+    want = select_ref.select(meta, meta["tile_ranges"], plan.ids.get(), pixels, plan.width, sampler, k)
     width = max(got["ids"].shape[1], want["ids"].shape[1])
     pad = lambda a, v: np.pad(a, ((0, 0), (0, width - a.shape[1])), constant_values=v)
     ids_g, ids_w = pad(got["ids"], -1), pad(want["ids"], -1)
@@ -47,7 +47,7 @@ def compare(plan, sel: Selection, pixels: np.ndarray, sampler: str, k: int) -> i
         for x, y in pixels[~same]:
             start, end = meta["tile_ranges"][(y // 16) * tiles_x + x // 16]
             ids = plan.ids.get()[start:end]
-            assert ref.quantile_margin(ref.alphas(meta, ids, np.array([[x, y]]))[0], k) < 1e-5
+            assert select_ref.quantile_margin(select_ref.alphas(meta, ids, np.array([[x, y]]))[0], k) < 1e-5
     return int((~same).sum())
 
 
@@ -190,11 +190,11 @@ def test_quantile_converges_to_volume(fox):
     rgb = fox.rgb
     vol = select(plan, "volume", 1, pixels).host()
     hit = vol["count"] > 0
-    v_img = ref.blend(vol["ids"], vol["weights"], rgb)[hit] / (1 - vol["t_walk"][hit, None])
+    v_img = blend_ref.blend(vol["ids"], vol["weights"], rgb)[hit] / (1 - vol["t_walk"][hit, None])
     errors = {}
     for k in (5, 10, 20, 40, 100, 1000):
         q = select(plan, "quantile", k, pixels).host()
-        errors[k] = float(np.abs(ref.blend(q["ids"], q["weights"], rgb)[hit] - v_img).mean())
+        errors[k] = float(np.abs(blend_ref.blend(q["ids"], q["weights"], rgb)[hit] - v_img).mean())
     print("mean |Q - V| (fox RGB):", {k: f"{e:.5f}" for k, e in errors.items()})
     assert errors[1000] < errors[40] < errors[5]
     assert errors[1000] < 0.01

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 import qr_cl
-from qr_cl.scene import SH_C0, Gaussians, SceneFormatError, _read_vertices, ply_property_names
+from qr_cl.runtime import SH_C0
+from qr_cl.scene import Gaussians, SceneFormatError, ply_property_names, read_ply_vertices
 
 
 def random_gaussians(n=50, degree=0, seed=0) -> Gaussians:
@@ -45,8 +46,8 @@ def test_round_trip_is_exact_to_float32(tmp_path, degree, ascii):
     for field in ("quats", "scales", "opacities"):  # activation(raw(x)) == x up to float32 rounding
         np.testing.assert_allclose(getattr(h, field), getattr(g, field), rtol=2e-6, atol=1e-7)
     qr_cl.save_ply(tmp_path / "again.ply", h, ascii=ascii)  # save(load(f)) reproduces the raw values
-    first, _ = _read_vertices(path)
-    again, _ = _read_vertices(tmp_path / "again.ply")
+    first, _ = read_ply_vertices(path)
+    again, _ = read_ply_vertices(tmp_path / "again.ply")
     assert list(first) == list(again) == ply_property_names(degree)
     for name in first:
         np.testing.assert_allclose(again[name], first[name], rtol=1e-5, atol=1e-6, err_msg=name)

@@ -4,7 +4,7 @@ import pytest
 import torch
 
 import qr_cl
-from qr_cl.samplers import SelectionCache
+from qr_cl.render import SelectionCache
 
 
 def render(scene, cache, viewmat=None, sampler="quantile", k=8):

@@ -7,9 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from qr_cl.data import load_scene_folder
-from qr_cl.metrics import NYU40_NAMES
-from qr_cl.synthetic import synthetic_scene
+from qr_cl.app.data import load_scene_folder
+from qr_cl.app.metrics import NYU40_NAMES
+from qr_cl.app.synthetic import synthetic_scene
 from synthetic_helpers import tiny_config
 
 

@@ -5,10 +5,11 @@ import numpy as np
 import pytest
 import torch
 
-from qr_cl.baseline import fit_free_features
-from qr_cl.data import load_scene_folder
-from qr_cl.loss import contrastive_loss, sample_rays
-from qr_cl.train import TrainConfig, torch_threads, train
+from qr_cl.app.baseline import fit_free_features
+from qr_cl.app.data import load_scene_folder
+from qr_cl.app.loss import contrastive_loss, sample_rays
+from qr_cl.app.model import torch_threads
+from qr_cl.app.train import TrainConfig, train
 from synthetic_helpers import tiny_scene
 
 
@@ -77,7 +78,7 @@ def test_baseline_fits_one_scene(scene):
     assert feats.shape == (len(data.gaussians), data.feature_dim)
     assert np.allclose(np.linalg.norm(feats, axis=1), 1, atol=1e-5)
     # The fitted features now render close to the masks' features on a training view.
-    from qr_cl.train import scene_loss
+    from qr_cl.app.loss import scene_loss
     untrained = torch.nn.functional.normalize(torch.randn(feats.shape, generator=torch.Generator().manual_seed(9)), dim=1)
     rng = lambda: np.random.default_rng(123)
     assert scene_loss(data, torch.from_numpy(feats), cfg, rng())[0] < 0.7 * scene_loss(data, untrained, cfg, rng())[0]

@@ -23,25 +23,18 @@ import os
 import signal
 import sys
 import time
-from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
+import torch.distributed as dist
+from tqdm import tqdm
 
+from ..runtime import SAMPLERS
 from .data import SceneData, load_scene_folder
-from .loss import contrastive_loss, sample_rays
-
-SAMPLERS = ("quantile", "topk", "volume")
-
-#: UNet presets: name -> overrides of backbone.minkunet14 (empty = MinkUNet14 itself).
-NETS: dict[str, dict] = {
-    "tiny": dict(stem_channels=8, stem_kernel=3, enc_channels=(8, 16, 16, 16), dec_channels=(16, 16, 16, 16)),
-    "small": dict(stem_channels=16, enc_channels=(16, 32, 64, 64), dec_channels=(64, 64, 48, 48)),
-    "mink14": {},
-}
-
+from .loss import scene_loss
+from .model import NETS, build_net, gaussian_set, torch_threads
 
 @dataclass
 class TrainConfig:
@@ -75,65 +68,10 @@ class TrainConfig:
             raise ValueError("no training scenes given")
 
 
-def build_net(net: str, feature_dim: int, grid_size: float):
-    """A GSNet with the UNet preset ``net`` (see :data:`NETS`) predicting ``feature_dim``-D features."""
-    from backbone import GSNet, VoxelConfig, minkunet14
-    voxels = VoxelConfig(grid_size=grid_size)
-    return GSNet(feature_dim, voxels, minkunet14(voxels.num_features, **NETS[net]))
-
-
-def gaussian_set(scene: SceneData):
-    """The scene's Gaussians as a backbone.GaussianSet (torch float32)."""
-    from backbone import GaussianSet
-    g = scene.gaussians
-    t = [torch.from_numpy(np.ascontiguousarray(a, np.float32)) for a in (g.means, g.quats, g.scales, g.opacities, g.sh)]
-    return GaussianSet.from_sh(*t)
-
-
-def render_rays(scene: SceneData, features: torch.Tensor, frame_index: int, pixels: np.ndarray,
-                sampler: str, k: int) -> torch.Tensor:
-    """Differentiable render of ``pixels`` [P,2] (x, y) of frame ``frame_index``: [P,C]."""
-    from .render import rasterize
-    g, cam = scene.gaussians, scene.frames[frame_index].camera
-    out, _, _ = rasterize(g.means, g.quats, g.scales, g.opacities, features, cam.viewmat, cam.K,
-                          cam.width, cam.height, sampler=sampler, k=k, pixels=pixels)
-    return out
-
-
-def scene_loss(scene: SceneData, features: torch.Tensor, cfg: TrainConfig, rng: np.random.Generator) -> tuple[torch.Tensor, int]:
-    """Mean contrastive loss over ``cfg.views`` random views of ``cfg.rays`` rays; (loss, rays used)."""
-    usable = [i for i, f in enumerate(scene.frames) if len(f.features) > 1]
-    if not usable:
-        raise ValueError(f"{scene.root}: no frame has two or more masks to contrast")
-    views = rng.choice(usable, cfg.views, replace=cfg.views > len(usable))
-    losses, n = [], 0
-    for v in views:
-        frame = scene.frames[int(v)]
-        pixels, target = sample_rays(frame, cfg.rays, rng)
-        rendered = render_rays(scene, features, int(v), pixels, cfg.sampler, cfg.k)
-        losses.append(contrastive_loss(rendered, torch.from_numpy(target), torch.from_numpy(frame.features),
-                                       cfg.temperature))
-        n += len(pixels)
-    return torch.stack(losses).mean(), n
-
-
 def step_slots(cfg: TrainConfig, step: int, n_scenes: int) -> list[int]:
     """Scene indices of the ``batch_scenes`` slots of ``step`` (the same on every rank)."""
     rng = np.random.default_rng([cfg.seed, step, 7])
     return rng.choice(n_scenes, cfg.batch_scenes, replace=cfg.batch_scenes > n_scenes).tolist()
-
-
-@contextmanager
-def torch_threads(n: int):
-    """Run the block with ``n`` torch intra-op threads (restored after). One thread is the default
-    for training: PoCL renders with its own threads, and torch's OpenMP workers spin badly when the
-    cores are shared (a 0.7 s step took 60 s with 2 threads on a busy 2-core machine)."""
-    old = torch.get_num_threads()
-    torch.set_num_threads(n)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(old)
 
 
 def save_atomic(obj, path: Path) -> None:
@@ -173,7 +111,6 @@ class Trainer:
 
     def train_step(self) -> tuple[float, int]:
         """One optimizer step over this step's scenes; returns (global loss, rays on this rank)."""
-        import torch.distributed as dist
         cfg = self.cfg
         self.net.train()
         self.opt.zero_grad(set_to_none=False)
@@ -234,7 +171,6 @@ def train(cfg: TrainConfig, resume: bool = False, rank: int = 0, world: int = 1,
     A checkpoint is written every ``cfg.checkpoint_every`` steps and at the end; Ctrl-C (or
     SIGTERM) writes one for the last finished step before stopping.
     """
-    from tqdm import tqdm
     trainer = Trainer(cfg, rank, world)
     path = Path(cfg.out) / "checkpoint.pt"
     if resume and path.is_file():
@@ -301,7 +237,6 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
 
 def run(args: argparse.Namespace) -> int:
     """Train (one process, or one rank of a torchrun job when WORLD_SIZE > 1)."""
-    import torch.distributed as dist
     world = int(os.environ.get("WORLD_SIZE", "1"))
     rank = int(os.environ.get("RANK", "0"))
     if world > 1:

@@ -17,6 +17,13 @@ import json
 import time
 from pathlib import Path
 
+from .baseline import fit_free_features
+from .data import load_scene_folder
+from .evaluate import evaluate_features, ground_truth, markdown_table, network_features, write_visuals
+from .model import torch_threads
+from .synthetic import SyntheticConfig, synthetic_scene
+from .train import TrainConfig, train
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``qr-cl demo``."""
@@ -32,7 +39,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _train(cfg, resume: bool = False) -> tuple[dict, float]:
-    from .train import train
     start = time.perf_counter()
     trainer = train(cfg, resume=resume)
     return trainer.state(), time.perf_counter() - start
@@ -40,11 +46,6 @@ def _train(cfg, resume: bool = False) -> tuple[dict, float]:
 
 def run(args: argparse.Namespace) -> int:
     """Run the demo (module docstring) and print where the report is."""
-    from .baseline import fit_free_features
-    from .data import load_scene_folder
-    from .evaluate import evaluate_features, ground_truth, markdown_table, network_features, write_visuals
-    from .synthetic import SyntheticConfig, synthetic_scene
-    from .train import TrainConfig, torch_threads
 
     t0 = time.perf_counter()
     out = Path(args.out)

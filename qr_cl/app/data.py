@@ -24,8 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .camera import Camera, load_cameras
-from .scene import Gaussians, SceneFormatError, _read_vertices, load_ply
+from ..scene import Camera, Gaussians, SceneFormatError, load_cameras, load_ply, read_ply_vertices
 
 
 class SceneDataError(SceneFormatError):
@@ -148,7 +147,7 @@ def _load_classes(path: Path, dim: int | None) -> ClassTable:
 def read_labelled_points(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """A labelled point cloud PLY (vertex x, y, z and an integer ``label``, e.g. ScanNet's
     ``*.labels.ply``): points [P,3] float64 and labels [P] int64."""
-    columns, _ = _read_vertices(path)
+    columns, _ = read_ply_vertices(path)
     missing = [k for k in ("x", "y", "z", "label") if k not in columns]
     if missing:
         raise SceneDataError(f"{path}: labelled point cloud lacks vertex properties {missing}")

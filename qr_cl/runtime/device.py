@@ -8,12 +8,17 @@ process may still fork before touching OpenCL; after that, use the ``spawn`` sta
 from __future__ import annotations
 
 import os
+import re
 import warnings
 from dataclasses import dataclass, field
+from functools import lru_cache
 from importlib import resources
 
 import numpy as np
 import pyopencl as cl
+import pyopencl.array as cla
+
+from .constants import KERNEL_CONSTANTS
 
 NO_OPENCL_HELP = (
     "No OpenCL platform was found. qr-cl runs its kernels through OpenCL; on a CPU-only Debian or "
@@ -53,8 +58,11 @@ def list_devices() -> list[tuple[int, int, cl.Platform, cl.Device]]:
     return found
 
 
-def _is_gpu(device: cl.Device) -> bool:
-    return bool(device.type & cl.device_type.GPU)
+def device_kind(device: cl.Device) -> str:
+    """"gpu", "cpu" or "other" by what the device is: a device reporting several types at once
+    (a simulator such as oclgrind reports all of them) is "other"."""
+    gpu, cpu = bool(device.type & cl.device_type.GPU), bool(device.type & cl.device_type.CPU)
+    return "gpu" if gpu and not cpu else "cpu" if cpu and not gpu else "other"
 
 
 def _candidates(spec: str | None, pyopencl_ctx: str | None) -> list[cl.Device]:
@@ -63,9 +71,9 @@ def _candidates(spec: str | None, pyopencl_ctx: str | None) -> list[cl.Device]:
     if spec:
         s = spec.strip().lower()
         if s == "cpu":
-            chosen = [d for *_, d in devices if d.type & cl.device_type.CPU]
+            chosen = [d for *_, d in devices if device_kind(d) == "cpu"]
         elif s == "gpu":
-            chosen = [d for *_, d in devices if _is_gpu(d)]
+            chosen = [d for *_, d in devices if device_kind(d) == "gpu"]
         else:
             name, _, index = s.rpartition(":") if ":" in s else (s, "", "")
             matching = [d for _, _, p, d in devices if name in p.name.lower() or name in d.name.lower()]
@@ -87,9 +95,8 @@ def _candidates(spec: str | None, pyopencl_ctx: str | None) -> list[cl.Device]:
             return [devs[int(parts[1])]] if len(parts) > 1 and parts[1] else devs
         except (ValueError, IndexError) as exc:
             raise NoDeviceError(f"PYOPENCL_CTX={pyopencl_ctx!r} names no device") from exc
-    gpus = [d for *_, d in devices if _is_gpu(d)]
-    others = [d for *_, d in devices if not _is_gpu(d)]
-    return gpus + others
+    order = {"gpu": 0, "cpu": 1, "other": 2}
+    return sorted((d for *_, d in devices), key=lambda d: order[device_kind(d)])
 
 
 def trial_run(device: cl.Device) -> str | None:
@@ -131,14 +138,72 @@ def kernel_source(name: str) -> str:
     return text.replace('#include "common.h"', header)
 
 
+@lru_cache(maxsize=None)
+def kernel_files() -> dict[str, str]:
+    """Kernel name -> the ``kernels/*.cl`` file that defines it."""
+    files = {}
+    for path in resources.files("qr_cl.kernels").iterdir():
+        if path.name.endswith(".cl"):
+            for name in re.findall(r"__kernel\s+void\s+(\w+)\s*\(", path.read_text()):
+                files[name] = path.name
+    return files
+
+
+#: Element dtype of the OpenCL C scalar types a kernel argument may have (vectors: their base).
+_CL_TYPES = {"char": np.int8, "uchar": np.uint8, "short": np.int16, "ushort": np.uint16,
+             "int": np.int32, "uint": np.uint32, "long": np.int64, "ulong": np.uint64,
+             "float": np.float32}
+
+
+@dataclass(frozen=True)
+class KernelArg:
+    """One argument of a kernel as the kernel declares it (read back from the built program)."""
+
+    name: str
+    type_name: str        # e.g. "int", "float3", "float8*"
+    is_buffer: bool
+
+    @property
+    def dtype(self) -> np.dtype:
+        base = re.match(r"[a-z]+?(?=\d*\*?$)", self.type_name.replace("const ", "").strip())
+        if base is None or base.group(0) not in _CL_TYPES:
+            raise TypeError(f"kernel argument {self.name}: unsupported type {self.type_name!r}")
+        return np.dtype(_CL_TYPES[base.group(0)])
+
+    def value(self, kernel: str, x):
+        """The value pyopencl passes for ``x``: a buffer (device array, Buffer or None) or a
+        numpy scalar/vector of the declared type."""
+        if self.is_buffer:
+            if x is None or isinstance(x, cl.MemoryObjectHolder):
+                return x
+            if isinstance(x, cla.Array):
+                if x.dtype != self.dtype:
+                    raise TypeError(f"{kernel}({self.name}): a {self.type_name} buffer needs "
+                                    f"{self.dtype} data, got {x.dtype}")
+                return x.data
+            raise TypeError(f"{kernel}({self.name}): expected a device array or buffer, got "
+                            f"{type(x).__name__}")
+        lanes = re.search(r"(\d+)$", self.type_name)
+        if lanes:    # a vector argument: 3-vectors are passed as 4
+            n = int(lanes.group(1))
+            v = np.zeros(4 if n == 3 else n, self.dtype)
+            v[:n] = np.asarray(x, self.dtype).reshape(-1)
+            return v
+        return self.dtype.type(x)
+
+
 @dataclass
 class Runtime:
-    """One OpenCL context + in-order queue, with programs cached per (file, defines)."""
+    """One OpenCL context + in-order queue, with programs cached per (file, defines).
+
+    Kernels are called by name with their arguments by name (:meth:`launch`): the argument list
+    is the one the kernel declares, read back from the built program, so no call site repeats it.
+    """
 
     device: cl.Device
     context: cl.Context = field(init=False)
     queue: cl.CommandQueue = field(init=False)
-    _kernels: dict = field(init=False, default_factory=dict)
+    _programs: dict = field(init=False, default_factory=dict)
 
     def __post_init__(self) -> None:
         self.context = cl.Context([self.device])
@@ -146,19 +211,45 @@ class Runtime:
 
     @property
     def is_cpu(self) -> bool:
-        return bool(self.device.type & cl.device_type.CPU)
+        """True for a CPU device (the host is the device: host-side sorting pays off)."""
+        return device_kind(self.device) == "cpu"
 
-    def kernel(self, file: str, name: str, **defines: int | float) -> cl.Kernel:
-        """The kernel ``name`` from ``kernels/<file>`` built with ``-D KEY=VALUE`` per define.
-
-        Kernel objects are cached: ``prg.name`` would create a new one on every access.
-        """
+    def kernel(self, name: str, **defines: int | float) -> tuple[cl.Kernel, tuple[KernelArg, ...]]:
+        """The kernel ``name`` built with ``-D KEY=VALUE`` per define (and the shared constants),
+        with its declared arguments. Programs and kernel objects are cached."""
+        file = kernel_files().get(name)
+        if file is None:
+            raise KeyError(f"no kernel named {name!r} in qr_cl.kernels")
         key = (file, tuple(sorted(defines.items())))
-        if key not in self._kernels:
-            options = [f"-D{k}={v}" for k, v in sorted(defines.items())]
+        if key not in self._programs:
+            constants = {**KERNEL_CONSTANTS, **defines}
+            options = ["-cl-kernel-arg-info"] + [f"-D{k}={v}" for k, v in sorted(constants.items())]
             program = cl.Program(self.context, kernel_source(file)).build(options=options)
-            self._kernels[key] = {k.function_name: k for k in program.all_kernels()}
-        return self._kernels[key][name]
+            self._programs[key] = {k.function_name: (k, _declared_args(k)) for k in program.all_kernels()}
+        return self._programs[key][name]
+
+    def launch(self, name: str, global_size: int | tuple[int, ...], defines: dict | None = None,
+               local_size: tuple[int, ...] | None = None, **args) -> None:
+        """Enqueue kernel ``name`` over ``global_size`` work-items with its arguments by name.
+
+        Device arrays are checked against the declared element type, scalars converted to it;
+        a missing or unknown argument raises TypeError naming the kernel.
+        """
+        kernel, declared = self.kernel(name, **(defines or {}))
+        names = [a.name for a in declared]
+        missing, unknown = [n for n in names if n not in args], [n for n in args if n not in names]
+        if missing or unknown:
+            raise TypeError(f"kernel {name}({', '.join(names)}): missing {missing}, unknown {unknown}")
+        size = (global_size,) if isinstance(global_size, int) else tuple(global_size)
+        kernel(self.queue, size, local_size, *(a.value(name, args[a.name]) for a in declared))
+
+
+def _declared_args(kernel: cl.Kernel) -> tuple[KernelArg, ...]:
+    info = cl.kernel_arg_info
+    buffer_spaces = (cl.kernel_arg_address_qualifier.GLOBAL, cl.kernel_arg_address_qualifier.CONSTANT)
+    return tuple(KernelArg(kernel.get_arg_info(i, info.NAME), kernel.get_arg_info(i, info.TYPE_NAME),
+                           kernel.get_arg_info(i, info.ADDRESS_QUALIFIER) in buffer_spaces)
+                 for i in range(kernel.get_info(cl.kernel_info.NUM_ARGS)))
 
 
 _RUNTIME: Runtime | None = None

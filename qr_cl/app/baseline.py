@@ -5,16 +5,25 @@ is fitted to one scene's masks with the same loss, sampler, views and rays per s
 """
 from __future__ import annotations
 
+from typing import Protocol
+
 import numpy as np
 import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
 from .data import SceneData
-from .train import TrainConfig, scene_loss
+from .loss import RaySettings, scene_loss
 
 
-def fit_free_features(scene: SceneData, cfg: TrainConfig, lr: float = 0.05, progress: bool = True) -> np.ndarray:
+class BaselineSettings(RaySettings, Protocol):
+    """What the baseline reads of a run's settings (a ``TrainConfig`` has them)."""
+
+    steps: int
+    seed: int
+
+
+def fit_free_features(scene: SceneData, cfg: BaselineSettings, lr: float = 0.05, progress: bool = True) -> np.ndarray:
     """Optimize free features of ``scene`` for ``cfg.steps`` steps (Adam at ``lr``; views, rays,
     sampler, K and temperature from ``cfg``). Returns unit features [N,C] float32."""
     gen = torch.Generator().manual_seed(cfg.seed)

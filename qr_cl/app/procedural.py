@@ -3,7 +3,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .scene import SH_C0, Gaussians
+from ..runtime import SH_C0
+from ..scene import Gaussians
 
 
 def _surface_gaussians(points: np.ndarray, normals: np.ndarray, rgb: np.ndarray, size: float,

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .scene import SceneFormatError
+from .gaussians import SceneFormatError
 
 # Blender/NeRF cameras look down -z with +y up; flipping y and z gives the OpenCV convention.
 _OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])

@@ -9,9 +9,9 @@ import numpy as np
 import pyopencl.array as cla
 import torch
 
-from .blend import blend_backward, blend_forward
-from .samplers import Selection
-from .vrender import channel_layout, padded_rows
+from ..runtime import channel_layout, check_channels, padded_rows
+from ..stages.blend import blend_backward, blend_forward
+from ..stages.select import Selection
 
 
 def _rows(rt, tensor: torch.Tensor, cstride: int) -> cla.Array:
@@ -59,8 +59,7 @@ def blend(selection: Selection, features: torch.Tensor, background: torch.Tensor
     returned in features' dtype. Gradients flow to features and background only."""
     if features.ndim != 2 or features.shape[0] != selection.n_gaussians:
         raise ValueError(f"features must be [{selection.n_gaussians}, C], got {tuple(features.shape)}")
-    if not 1 <= features.shape[1] <= 2048:
-        raise ValueError(f"features have {features.shape[1]} channels; 1..2048 are supported")
+    check_channels(features.shape[1])
     if background is not None and tuple(background.shape) != (features.shape[1],):
         raise ValueError(f"background must be [{features.shape[1]}], got {tuple(background.shape)}")
     return BlendFunction.apply(features, selection, background)

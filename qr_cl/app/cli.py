@@ -8,6 +8,12 @@ import time
 import warnings
 from pathlib import Path
 
+from tqdm import tqdm
+
+from ..render import render_volume_fused
+from ..runtime import NoDeviceError, choose_device, list_devices, trial_run
+from ..scene import SceneFormatError, load_cameras, load_layout_instance, load_scene, orbit_cameras
+from .images import save_alpha, save_depth, save_rgb
 
 
 # Sub-commands implemented in their own modules, each with add_arguments(parser) and run(args).
@@ -18,7 +24,6 @@ DELEGATED = {"demo": ("demo", "the embedded default job (see README)"),
 
 
 def _cmd_devices(args: argparse.Namespace) -> int:
-    from .device import choose_device, list_devices, trial_run
     devices = list_devices()
     chosen = choose_device()
     for pi, di, platform, dev in devices:
@@ -33,15 +38,12 @@ def _cmd_devices(args: argparse.Namespace) -> int:
 
 def render_views(gaussians, cameras, out: Path, sh_degree: int | None, prefix: str = "") -> float:
     """Render RGB, depth and alpha PNGs of every camera into ``out``; returns seconds spent."""
-    from tqdm import tqdm
 
-    from .images import save_alpha, save_depth, save_rgb
-    from .render import rasterize
     out.mkdir(parents=True, exist_ok=True)
     degree = gaussians.sh_degree if sh_degree is None else min(sh_degree, gaussians.sh_degree)
     start = time.perf_counter()
     for i, cam in enumerate(tqdm(cameras, desc="render", unit="view")):
-        image, alpha, meta = rasterize(gaussians.means, gaussians.quats, gaussians.scales,
+        image, alpha, meta = render_volume_fused(gaussians.means, gaussians.quats, gaussians.scales,
                                        gaussians.opacities, gaussians.sh, cam.viewmat, cam.K,
                                        cam.width, cam.height, sh_degree=degree)
         name = f"{prefix}{i:03d}"
@@ -52,8 +54,6 @@ def render_views(gaussians, cameras, out: Path, sh_degree: int | None, prefix: s
 
 
 def _cmd_render(args: argparse.Namespace) -> int:
-    from .camera import load_cameras, load_layout_instance, orbit_cameras
-    from .scene import load_scene
     gaussians = load_scene(args.scene)
     if args.cameras:
         cameras = load_cameras(args.cameras)
@@ -88,17 +88,15 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--sh-degree", type=int, help="use at most this SH degree (default: the file's)")
     r.add_argument("--out", required=True, help="output folder")
     for name, (module, text) in DELEGATED.items():
-        importlib.import_module(f"qr_cl.{module}").add_arguments(sub.add_parser(name, help=text))
+        importlib.import_module(f"qr_cl.app.{module}").add_arguments(sub.add_parser(name, help=text))
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``qr-cl`` console script."""
-    from .device import NoDeviceError
-    from .scene import SceneFormatError
     args = build_parser().parse_args(argv)
     commands = {"devices": _cmd_devices, "render": _cmd_render}
-    commands.update({name: importlib.import_module(f"qr_cl.{module}").run
+    commands.update({name: importlib.import_module(f"qr_cl.app.{module}").run
                      for name, (module, _) in DELEGATED.items()})
     with warnings.catch_warnings():
         warnings.simplefilter("always")

@@ -29,9 +29,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .camera import Camera, look_at
+from ..render import rasterize
+from ..runtime import SH_C0
+from ..scene import Camera, Gaussians, look_at, save_ply
 from .metrics import NYU40_NAMES
-from .scene import SH_C0, Gaussians, save_ply
 
 GENERATOR_VERSION = 2
 
@@ -75,7 +76,7 @@ class SyntheticConfig:
 
 
 def _box(size, centre, yaw: float = 0.0):
-    import open3d as o3d
+    import open3d as o3d  # function-local: open3d takes ~0.9 s to import and only the room generator needs it
     m = o3d.geometry.TriangleMesh.create_box(*size)
     m.translate(-np.asarray(size) / 2)
     m.rotate(_rot_z(yaw), center=(0, 0, 0))
@@ -84,14 +85,14 @@ def _box(size, centre, yaw: float = 0.0):
 
 
 def _cylinder(radius: float, height: float, centre):
-    import open3d as o3d
+    import open3d as o3d  # function-local: open3d takes ~0.9 s to import and only the room generator needs it
     m = o3d.geometry.TriangleMesh.create_cylinder(radius, height, resolution=24)
     m.translate(centre)
     return m
 
 
 def _sphere(radius: float, centre):
-    import open3d as o3d
+    import open3d as o3d  # function-local: open3d takes ~0.9 s to import and only the room generator needs it
     m = o3d.geometry.TriangleMesh.create_sphere(radius, resolution=12)
     m.translate(centre)
     return m
@@ -249,7 +250,6 @@ def _cameras(cfg: SyntheticConfig, targets: np.ndarray, footprints, rng: np.rand
 
 def _instance_maps(gaussians: Gaussians, instance: np.ndarray, n_inst: int, cams: list[Camera]) -> list[np.ndarray]:
     """Per camera an [H,W] int32 map of the dominant instance (-1 where coverage < 0.5)."""
-    from .render import rasterize
     onehot = np.zeros((len(gaussians), n_inst), np.float32)
     valid = instance >= 0
     onehot[np.flatnonzero(valid), instance[valid]] = 1

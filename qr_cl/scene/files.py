@@ -1,4 +1,4 @@
-"""Gaussian scenes: the activated in-memory form, and INRIA 3DGS PLY / antimatter15 .splat I/O.
+"""Gaussian scene files: INRIA 3DGS PLY and antimatter15 .splat I/O (activated :class:`Gaussians`).
 
 INRIA PLY stores raw values: ``opacity`` is a logit, ``scale_*`` are logs, ``rot_*`` an
 unnormalised w,x,y,z quaternion, ``f_rest_*`` channel-major (R coefficients 1.., then G, then B).
@@ -13,12 +13,13 @@ from __future__ import annotations
 
 import os
 import warnings
-from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
-SH_C0 = 0.28209479177387814
+from ..runtime.constants import SH_C0
+from .gaussians import Gaussians, SceneFormatError
+
 OPACITY_LOGIT_LIMIT = 30.0  # float32 sigmoid(30) == 1.0: a finite stand-in for +/-inf
 
 _PLY_TYPES = {
@@ -27,84 +28,6 @@ _PLY_TYPES = {
     "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
     "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
 }
-
-
-class SceneFormatError(ValueError):
-    """A scene file is malformed; the message names the file and the problem."""
-
-
-@dataclass
-class Gaussians:
-    """Activated 3D Gaussians (float32 numpy arrays).
-
-    means [N,3] world units; quats [N,4] unit w,x,y,z; scales [N,3] standard deviations in world
-    units; opacities [N] in [0,1]; sh [N,(d+1)^2,3] spherical-harmonic coefficients (sh[:,0] is
-    the DC term; RGB = max(0, SH_C0 * dc + 0.5) for degree 0).
-    """
-
-    means: np.ndarray
-    quats: np.ndarray
-    scales: np.ndarray
-    opacities: np.ndarray
-    sh: np.ndarray
-
-    def __post_init__(self) -> None:
-        n = len(self.means)
-        shapes = {"means": (n, 3), "quats": (n, 4), "scales": (n, 3), "opacities": (n,)}
-        for name, shape in shapes.items():
-            if getattr(self, name).shape != shape:
-                raise ValueError(f"Gaussians.{name} has shape {getattr(self, name).shape}, expected {shape}")
-        if self.sh.ndim != 3 or self.sh.shape[0] != n or self.sh.shape[2] != 3 or \
-                self.sh.shape[1] not in (1, 4, 9, 16):
-            raise ValueError(f"Gaussians.sh has shape {self.sh.shape}, expected (N, (d+1)^2, 3), d<=3")
-
-    def __len__(self) -> int:
-        return len(self.means)
-
-    @property
-    def sh_degree(self) -> int:
-        return int(round(np.sqrt(self.sh.shape[1]))) - 1
-
-    @property
-    def rgb(self) -> np.ndarray:
-        """[N,3] view-independent colour from the DC term, in [0, 1] after clamping at 0."""
-        return np.maximum(SH_C0 * self.sh[:, 0] + 0.5, 0.0).astype(np.float32)
-
-    def subset(self, index: np.ndarray) -> "Gaussians":
-        """The Gaussians selected by a boolean mask or an index array."""
-        return Gaussians(self.means[index], self.quats[index], self.scales[index],
-                         self.opacities[index], self.sh[index])
-
-    def transformed(self, scale: float = 1.0, quat_wxyz=(1.0, 0.0, 0.0, 0.0),
-                    translation=(0.0, 0.0, 0.0)) -> "Gaussians":
-        """A copy under the similarity x -> R(quat) * scale * x + translation.
-
-        SH coefficients are left unrotated (exact for degree 0).
-        """
-        q = np.asarray(quat_wxyz, np.float64)
-        rot = quat_to_rotmat(q[None] / np.linalg.norm(q))[0]
-        means = (scale * self.means.astype(np.float64)) @ rot.T + np.asarray(translation)
-        quats = quat_multiply(np.broadcast_to(q / np.linalg.norm(q), self.quats.shape), self.quats)
-        return replace(self, means=means.astype(np.float32), quats=quats.astype(np.float32),
-                       scales=(self.scales * scale).astype(np.float32))
-
-
-def quat_to_rotmat(q: np.ndarray) -> np.ndarray:
-    """Rotation matrices [N,3,3] from unit w,x,y,z quaternions [N,4]."""
-    w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
-    return np.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ], axis=-1).reshape(-1, 3, 3)
-
-
-def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton products a*b of w,x,y,z quaternions [N,4]."""
-    aw, ax, ay, az = a.T
-    bw, bx, by, bz = b.T
-    return np.stack([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
-                     aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw], -1)
 
 
 def _sigmoid(x: np.ndarray) -> np.ndarray:
@@ -165,7 +88,7 @@ def _read_header(path: Path, fh) -> tuple[str, int, list[tuple[str, str]], int]:
     return fmt, count, props, fh.tell()
 
 
-def _read_vertices(path: Path) -> tuple[dict[str, np.ndarray], dict[str, str]]:
+def read_ply_vertices(path: Path) -> tuple[dict[str, np.ndarray], dict[str, str]]:
     """The vertex properties of a PLY file ({name: values}, {name: ply type}), with size checks."""
     with open(path, "rb") as fh:
         fmt, count, props, header_len = _read_header(path, fh)
@@ -220,7 +143,7 @@ def load_ply(path: str | os.PathLike) -> Gaussians:
     path = Path(path)
     if not path.is_file():
         raise SceneFormatError(f"{path}: no such file")
-    columns, types = _read_vertices(path)
+    columns, types = read_ply_vertices(path)
     n_rest = _sh_rest_count(path, list(columns))
     required = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
                 "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]

@@ -15,9 +15,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from matplotlib import colormaps
+from tqdm import tqdm
+
+from ..render import rasterize
+from ..scene import Gaussians, quat_to_rotmat
 from .data import ClassTable, SceneData, load_scene_folder
+from .images import save_rgb
 from .metrics import NYU40_NAMES, SUBSETS, miou_macc
-from .scene import Gaussians, quat_to_rotmat
+from .model import build_net, gaussian_set, torch_threads
 
 MIN_OPACITY = 0.1
 
@@ -31,10 +37,10 @@ def pseudo_labels(gaussians: Gaussians, points: np.ndarray, labels: np.ndarray, 
     ``min_opacity``, or every neighbour farther than ``max_mahalanobis`` in the Gaussian's own
     Mahalanobis distance sqrt(d^T Sigma^-1 d), Sigma = R S^2 R^T.
     """
-    import open3d as o3d
     n = len(gaussians)
     if len(points) == 0:
         return np.full(n, -1, np.int64)
+    import open3d as o3d  # function-local: open3d takes ~0.9 s to import and only the pseudo labels needs it
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
     tree = o3d.geometry.KDTreeFlann(cloud)
     k = min(k, len(points))
@@ -92,7 +98,6 @@ def evaluate_features(scene: SceneData, features: np.ndarray, gt: np.ndarray, su
 
 def network_features(checkpoint: Path | dict, scene: SceneData) -> np.ndarray:
     """GS-Net features [N,C] (eval mode) of ``scene`` from a training checkpoint."""
-    from .train import build_net, gaussian_set
     ckpt = torch.load(checkpoint, weights_only=False) if not isinstance(checkpoint, dict) else checkpoint
     cfg = ckpt["config"]
     net = build_net(cfg["net"], cfg["feature_dim"], cfg["grid_size"])
@@ -103,7 +108,6 @@ def network_features(checkpoint: Path | dict, scene: SceneData) -> np.ndarray:
 
 
 def _palette(ids) -> dict[int, np.ndarray]:
-    from matplotlib import colormaps
     cmap = colormaps["tab20"]
     return {int(c): np.asarray(cmap(i % 20)[:3], np.float32) for i, c in enumerate(sorted(ids))}
 
@@ -112,7 +116,6 @@ def _render(scene: SceneData, values: np.ndarray, view: int, sampler: str = "qua
             visible: np.ndarray | None = None) -> np.ndarray:
     """Full image [H,W,C] of per-Gaussian ``values`` [N,C] from frame ``view`` (only the
     Gaussians where ``visible`` [N] bool is set, if given)."""
-    from .render import rasterize
     g, cam = scene.gaussians, scene.frames[view].camera
     opacities = g.opacities if visible is None else np.where(visible, g.opacities, 0).astype(np.float32)
     img, _, _ = rasterize(g.means, g.quats, g.scales, opacities, np.ascontiguousarray(values, np.float32),
@@ -151,7 +154,6 @@ def write_visuals(scene: SceneData, features: np.ndarray, gt: np.ndarray, out: P
     """Per view a PNG [RGB | PCA of the rendered features | predicted classes | ground truth (only
     the labelled Gaussians drawn)], and a
     coloured, labelled PLY of the Gaussians (predicted colours). Returns the files written."""
-    from .images import save_rgb
     out.mkdir(parents=True, exist_ok=True)
     table = scene.classes.subset(SUBSETS[subset])
     pred = predict(features, table)
@@ -208,9 +210,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Evaluate every scene, write results.json / results.md and the images; print the table."""
-    from tqdm import tqdm
 
-    from .train import torch_threads
     if args.features and len(args.scenes) != 1:
         raise SystemExit("qr-cl eval: --features evaluates exactly one scene")
     out = Path(args.out)

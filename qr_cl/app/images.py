@@ -1,11 +1,15 @@
-"""Writing renders as PNG pictures (RGB, depth with a colour map, alpha in grey)."""
+"""Pictures: renders as PNGs (RGB, depth with a colour map, alpha in grey) and plots."""
 from __future__ import annotations
 
 import os
 
+import matplotlib
 import numpy as np
-from matplotlib import colormaps
-from matplotlib.image import imsave
+
+matplotlib.use("Agg")   # files only: never open a window (before pyplot is imported)
+import matplotlib.pyplot as plt  # noqa: E402
+from matplotlib import colormaps  # noqa: E402
+from matplotlib.image import imsave  # noqa: E402
 
 
 def save_rgb(path: str | os.PathLike, image: np.ndarray) -> None:
@@ -30,3 +34,22 @@ def save_depth(path: str | os.PathLike, depth: np.ndarray, alpha: np.ndarray) ->
         t = np.clip((d - lo) / max(hi - lo, 1e-12), 0, 1)
         rgb[covered] = colormaps["turbo"](1 - t[covered])[:, :3]
     imsave(path, rgb)
+
+
+def plot_transmittance_profiles(profiles: dict[str, tuple[np.ndarray, np.ndarray]], path: str,
+                                title: str = "") -> None:
+    """Step plot of T against depth for each sampler of ``profiles`` (name -> (depths, T) from
+    :func:`qr_cl.stages.select.transmittance_profile`), saved to ``path`` (any matplotlib format)."""
+    fig, ax = plt.subplots(figsize=(5, 3.5))
+    for name, (depths, t) in profiles.items():
+        if len(depths):
+            ax.step(np.concatenate([[depths[0]], depths]), t, where="post", marker=".", label=name)
+    ax.set_xlabel("depth (camera z)")
+    ax.set_ylabel("transmittance T")
+    ax.set_ylim(-0.02, 1.02)
+    ax.legend()
+    if title:
+        ax.set_title(title)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)

@@ -14,66 +14,27 @@ import json
 import math
 import os
 import platform
-import statistics
-import threading
 import time
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import pyopencl.array as cla
+from matplotlib.ticker import NullFormatter
+import torch
+from tqdm import tqdm
+
+from ..render import rasterize, render_volume_fused
+from ..runtime import SAMPLERS, channel_layout, padded_rows, runtime, to_device
+from ..scene import Gaussians, load_ply, look_at, orbit_cameras
+from ..stages import RasterPlan, bin_and_sort, blend_backward, blend_forward, project, render_fused, select
+from . import roofline
+from .images import plt  # pyplot on the file-only Agg backend
+from .procedural import procedural_scene
+from .timing import measure
 
 REPORT_VERSION = 1
-# The real scenes: $QR_CL_DATA, else ../shared/data beside a source checkout (tests use it too).
-DATA = Path(os.environ.get("QR_CL_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
-
-
-# ----------------------------------------------------------------------------------------------
-# timing and memory
-# ----------------------------------------------------------------------------------------------
-
-def _rss_bytes() -> int:
-    with open("/proc/self/statm") as fh:
-        return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
-
-
-class PeakMemory:
-    """Peak resident host memory above the level at entry, sampled every 2 ms in a thread."""
-
-    def __enter__(self) -> "PeakMemory":
-        self.base = self.peak = _rss_bytes()
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._sample, daemon=True)
-        self._thread.start()
-        return self
-
-    def _sample(self) -> None:
-        while not self._stop.wait(0.002):
-            self.peak = max(self.peak, _rss_bytes())
-
-    def __exit__(self, *exc) -> None:
-        self._stop.set()
-        self._thread.join()
-        self.peak = max(self.peak, _rss_bytes())
-
-    @property
-    def above_base(self) -> int:
-        return self.peak - self.base
-
-
-def measure(fn, rounds: int, warmup: int = 1) -> dict:
-    """Timings of ``fn()`` (which must finish its queue): min, median, spread (max - min) in s."""
-    for _ in range(warmup):
-        fn()
-    times = []
-    with PeakMemory() as mem:
-        for _ in range(rounds):
-            start = time.perf_counter()
-            fn()
-            times.append(time.perf_counter() - start)
-    return {"min_s": min(times), "median_s": statistics.median(times),
-            "spread_s": max(times) - min(times), "rounds": rounds, "times_s": times,
-            "peak_host_bytes": mem.above_base}
 
 
 # ----------------------------------------------------------------------------------------------
@@ -89,24 +50,21 @@ class BenchScene:
     camera: object
 
 
-def real_scenes(width: int, height: int) -> list[BenchScene]:
-    """The real scenes of ../shared/data (or $QR_CL_DATA) with an orbit camera; [] if absent."""
-    from .camera import orbit_cameras
-    from .scene import load_ply
+def real_scenes(data: Path | None, width: int, height: int) -> list[BenchScene]:
+    """The real scenes of the folder ``data`` (the fox and the donut, as in the project's shared
+    data) with an orbit camera; [] if ``data`` is None or holds neither."""
     found = []
     for name, rel in (("fox", "wakufactory-fox/fox.ply"), ("donut", "v3dg-donut/donut_fused.ply")):
-        if (DATA / rel).is_file():
+        if data is not None and (data / rel).is_file():
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
-                g = load_ply(DATA / rel)
+                g = load_ply(data / rel)
             found.append(BenchScene(name, g, orbit_cameras(g.means, 8, width, height)[1]))
     return found
 
 
 def synthetic_scene(n: int, width: int, height: int) -> BenchScene:
     """The procedural scene with ``n`` Gaussians and an orbit camera."""
-    from .camera import orbit_cameras
-    from .procedural import procedural_scene
     g = procedural_scene(n)
     return BenchScene(f"synthetic-{n // 1000}k", g, orbit_cameras(g.means, 8, width, height)[1])
 
@@ -114,8 +72,6 @@ def synthetic_scene(n: int, width: int, height: int) -> BenchScene:
 def layered_scene(depth: int, width: int, height: int) -> BenchScene:
     """``depth`` screen-filling Gaussians stacked along the view axis, each with alpha 5/depth,
     so every ray meets exactly ``depth`` Gaussians (the complexity sweep's N)."""
-    from .camera import look_at
-    from .scene import Gaussians
     z = np.linspace(2.0, 3.0, depth)
     g = Gaussians(np.c_[np.zeros((depth, 2)), z].astype(np.float32),
                   np.tile([1.0, 0, 0, 0], (depth, 1)).astype(np.float32),
@@ -133,7 +89,6 @@ class Sweep:
     """Runs configurations on one device and collects result rows."""
 
     def __init__(self, rounds: int, progress) -> None:
-        from .device import runtime
         self.rt = runtime()
         self.rounds = rounds
         self.rows: list[dict] = []
@@ -161,30 +116,27 @@ class Sweep:
 
     def plan(self, scene: BenchScene):
         """Time projection and binning+sort; return the RasterPlan."""
-        from . import raster
         g, cam = scene.gaussians, scene.camera
-        dev = [raster.to_device(self.rt, a) for a in (g.means, g.quats, g.scales, g.opacities)]
+        dev = [to_device(self.rt, a) for a in (g.means, g.quats, g.scales, g.opacities)]
         args = (cam.viewmat, cam.K, cam.width, cam.height, 0.01, 1e10)
 
-        def project():
-            out = raster.project(self.rt, *dev, *args)
+        def do_project():
+            out = project(self.rt, *dev, *args)
             self._finish()
             return out
-        self._row(scene, "projection", "-", 0, 0, measure(project, self.rounds))
-        splats, radii, rects, touched = project()
+        self._row(scene, "projection", "-", 0, 0, measure(do_project, self.rounds))
+        splats, radii, rects, touched = do_project()
 
         def bin_sort():
-            out = raster.bin_and_sort(self.rt, splats, rects, touched, cam.width, cam.height)
+            out = bin_and_sort(self.rt, splats, rects, touched, cam.width, cam.height)
             self._finish()
             return out
         self._row(scene, "binning+sort", "-", 0, 0, measure(bin_sort, self.rounds))
         ranges, ids, n_keys = bin_sort()
-        return raster.RasterPlan(self.rt, cam.width, cam.height, splats, radii, ranges, ids, n_keys)
+        return RasterPlan(self.rt, cam.width, cam.height, splats, radii, ranges, ids, n_keys)
 
     def fused(self, scene: BenchScene, plan, channels: int) -> dict:
         """Time the fused V-Render of ``channels`` random features."""
-        from .raster import to_device
-        from .vrender import channel_layout, padded_rows, render_fused
         cstride = channel_layout(channels)[2]
         feats = to_device(self.rt, padded_rows(np.random.default_rng(0).random(
             (len(scene.gaussians), channels), dtype=np.float32), cstride))
@@ -195,8 +147,6 @@ class Sweep:
 
     def looped_rgb(self, scene: BenchScene, plan, channels: int, rounds: int) -> dict:
         """The paper's 512-dagger baseline: the fused 3-channel V-Render looped ceil(C/3) times."""
-        from .raster import to_device
-        from .vrender import padded_rows, render_fused
         loops = math.ceil(channels / 3)
         feats = to_device(self.rt, padded_rows(np.random.default_rng(0).random(
             (len(scene.gaussians), 3), dtype=np.float32), 4))
@@ -210,12 +160,7 @@ class Sweep:
 
     def sampler(self, scene: BenchScene, plan, sampler: str, k: int, channels: int) -> dict:
         """Time selection, blend forward and blend backward for one sampler; return the blend row."""
-        import pyopencl.array as cla
 
-        from .blend import blend_backward, blend_forward
-        from .raster import to_device
-        from .samplers import select
-        from .vrender import channel_layout, padded_rows
         kk = k if sampler != "volume" else 0
 
         def do_select():
@@ -251,21 +196,21 @@ class Sweep:
         return fwd
 
     def end_to_end(self, scene: BenchScene, sampler: str, k: int, channels: int) -> dict:
-        """Time the public ``rasterize`` call (projection to image) for one sampler."""
-        from .render import rasterize
+        """Time the public call (projection to image) for one sampler: ``rasterize``, or
+        ``render_volume_fused`` for sampler "volume_fused"."""
         g, cam = scene.gaussians, scene.camera
         feats = np.random.default_rng(0).random((len(g), channels), dtype=np.float32)
-        timing = measure(lambda: rasterize(g.means, g.quats, g.scales, g.opacities, feats, cam.viewmat,
-                                           cam.K, cam.width, cam.height, sampler=sampler, k=k),
-                         self.rounds)
+        args = (g.means, g.quats, g.scales, g.opacities, feats, cam.viewmat, cam.K, cam.width, cam.height)
+        if sampler == "volume_fused":
+            timing = measure(lambda: render_volume_fused(*args), self.rounds)
+        else:
+            timing = measure(lambda: rasterize(*args, sampler=sampler, k=k), self.rounds)
         return self._row(scene, "end-to-end", sampler, k if sampler in ("quantile", "topk") else 0,
                          channels, timing)
 
     def torch_baselines(self, scene: BenchScene, plan, k: int, channels: int, numpy_rounds: int) -> None:
         """The same blend (Q-Render's selection) with torch embedding_bag and with numpy."""
-        import torch
 
-        from .samplers import select
         sel = select(plan, "quantile", k).host()
         ids, w = sel["ids"], sel["weights"]
         feats = torch.from_numpy(np.random.default_rng(0).random((len(scene.gaussians), channels),
@@ -298,11 +243,10 @@ class Sweep:
         entries' ids and weights read once."""
         if rays == 0:
             return {"bare_gather_s": 0.0, "fraction_of_bare_gather": 0.0, "fraction_of_roofline": 0.0}
-        from .roofline import bare_gather_blend
         k = max(1, round(mean_k))
         key = (rays, k, channels)
         if key not in self._bare:
-            self._bare[key] = bare_gather_blend(self.rt, rays, k, channels)
+            self._bare[key] = roofline.bare_gather_blend(self.rt, rays, k, channels)
         flops = 2.0 * rays * mean_k * channels
         min_bytes = rows * channels * 4 + rays * mean_k * 8
         limit = max(flops / self.limits["fma_flops"], min_bytes / self.limits["bandwidth_bytes_s"])
@@ -331,22 +275,16 @@ def _config(mode: str) -> dict:
             "real": True}
 
 
-def _samplers() -> list[str]:
-    return ["volume", "quantile", "topk"]
+def run_sweep(mode: str, out: Path, data: Path | None = None) -> dict:
+    """Run the sweep of ``mode`` (see :func:`_config`) on the real scenes of ``data`` (when given
+    and the mode uses them) and synthetic ones, write report.json, summary.md and plots into
+    ``out``; return the report."""
 
-
-def run_sweep(mode: str, out: Path) -> dict:
-    """Run the sweep of ``mode`` (see :func:`_config`), write report.json, summary.md and plots
-    into ``out``; return the report."""
-    from tqdm import tqdm
-
-    from . import roofline
-    from .device import runtime
     cfg = _config(mode)
     quick = mode != "full"
     rt = runtime()
     out.mkdir(parents=True, exist_ok=True)
-    scenes_by_res = {res: (real_scenes(*res) if cfg["real"] else [])
+    scenes_by_res = {res: (real_scenes(data, *res) if cfg["real"] else [])
                      or [synthetic_scene(50_000 if cfg["real"] else 2_000, *res)] for res in cfg["resolutions"]}
     main_res = cfg["resolutions"][0]
     n_jobs = 0
@@ -362,12 +300,12 @@ def run_sweep(mode: str, out: Path) -> dict:
             for scene in scenes[:1] if quick else scenes:
                 plan = sweep.plan(scene)
                 if res == main_res:
-                    for sampler in _samplers():          # time vs K at C = k_sweep_c
+                    for sampler in SAMPLERS:          # time vs K at C = k_sweep_c
                         for k in cfg["ks"] if sampler != "volume" else cfg["ks"][:1]:
                             sweep.sampler(scene, plan, sampler, k, cfg["k_sweep_c"])
                     for c in cfg["cs"]:                  # time vs C at K = c_sweep_k
                         sweep.fused(scene, plan, c)
-                        for sampler in _samplers():
+                        for sampler in SAMPLERS:
                             if c != cfg["k_sweep_c"]:
                                 sweep.sampler(scene, plan, sampler, cfg["c_sweep_k"], c)
                             sweep.end_to_end(scene, sampler, cfg["c_sweep_k"], c)
@@ -377,13 +315,13 @@ def run_sweep(mode: str, out: Path) -> dict:
                     sweep.end_to_end(scene, "volume_fused", 0, c)
                 else:
                     sweep.fused(scene, plan, cfg["k_sweep_c"])
-                    for sampler in _samplers():
+                    for sampler in SAMPLERS:
                         sweep.sampler(scene, plan, sampler, cfg["c_sweep_k"], cfg["k_sweep_c"])
         for n in cfg["synthetic"]:                       # scene size
             scene = synthetic_scene(n, *main_res)
             plan = sweep.plan(scene)
             sweep.fused(scene, plan, cfg["k_sweep_c"])
-            for sampler in _samplers():
+            for sampler in SAMPLERS:
                 sweep.sampler(scene, plan, sampler, cfg["c_sweep_k"], cfg["k_sweep_c"])
         complexity = complexity_sweep(sweep, cfg)
     report = {"version": REPORT_VERSION, "meta": _meta(rt, mode), "limits": sweep.limits,
@@ -409,13 +347,13 @@ def complexity_sweep(sweep: Sweep, cfg: dict) -> dict:
         scene = layered_scene(depth, width, height)
         plan = sweep.plan(scene)
         points.append(("volume_fused", depth, channels, sweep.fused(scene, plan, channels)["min_s"]))
-        for sampler in ("volume", "quantile", "topk"):
+        for sampler in SAMPLERS:
             fwd = sweep.sampler(scene, plan, sampler, 10, channels)
             sel = next(r for r in sweep.rows[::-1] if r["stage"] == "selection" and r["scene"] == scene.name
                        and r["sampler"] == sampler)
             points.append((sampler, depth, channels, sel["min_s"] + fwd["min_s"]))
     fits = {}
-    for sampler in ("volume_fused", "volume", "quantile", "topk"):
+    for sampler in ("volume_fused", *SAMPLERS):
         by_n = [(n, t) for s, n, c, t in points if s == sampler and c == c_fixed]
         by_c = [(c, t) for s, n, c, t in points if s == sampler and n == n_fixed]
         fits[sampler] = {"exponent_N": float(np.polyfit(*np.log(np.array(by_n)).T, 1)[0]),
@@ -479,7 +417,7 @@ def summary_markdown(report: dict) -> str:
               "fused | end-to-end | blend fwd / roofline | mean entries | peak host MB |",
               "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in rows:
-        if r["stage"] != "blend-forward" or r["sampler"] not in _samplers():
+        if r["stage"] != "blend-forward" or r["sampler"] not in SAMPLERS:
             continue
         sc = dict(scene=r["scene"], width=r["width"], height=r["height"])
         sel = _find(rows, stage="selection", sampler=r["sampler"], k=r["k"], **sc)
@@ -513,12 +451,8 @@ def summary_markdown(report: dict) -> str:
 
 def write_plots(report: dict, out: Path) -> None:
     """time_vs_k.png, time_vs_c.png, roofline.png and complexity.png into ``out``."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.ticker import NullFormatter
     rows = report["results"]
-    blend = [r for r in rows if r["stage"] == "blend-forward" and r["sampler"] in _samplers()]
+    blend = [r for r in rows if r["stage"] == "blend-forward" and r["sampler"] in SAMPLERS]
     if not blend:
         return
     sc = dict(scene=blend[0]["scene"], width=blend[0]["width"], height=blend[0]["height"])
@@ -545,7 +479,7 @@ def write_plots(report: dict, out: Path) -> None:
     fig, ax = plt.subplots(figsize=(6, 4))
     ks = sorted({r["k"] for r in blend if r["sampler"] == "quantile"})
     k_c = 40 if 40 in ks else ks[-1]
-    for sampler in _samplers():
+    for sampler in SAMPLERS:
         pts = sorted((r["channels"], r["min_s"]) for r in blend if r["sampler"] == sampler and
                      r["k"] == (k_c if sampler != "volume" else 0) and r["scene"] == sc["scene"] and r["width"] == sc["width"])
         if pts:
@@ -620,6 +554,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quick", action="store_true", help="the small sweep (under 3 minutes on 2 cores)")
     parser.add_argument("--smoke", action="store_true", help="a seconds-long run on tiny inputs (tests)")
     parser.add_argument("--out", default="qr-cl-bench", help="report folder (default ./qr-cl-bench)")
+    parser.add_argument("--data", default=os.environ.get("QR_CL_DATA"),
+                        help="folder with the real scenes (wakufactory-fox/fox.ply, v3dg-donut/"
+                             "donut_fused.ply; default $QR_CL_DATA): timed beside the synthetic ones")
     parser.add_argument("--compare", nargs=2, metavar=("A.json", "B.json"),
                         help="print B/A time ratios of two reports instead of measuring")
 
@@ -633,7 +570,8 @@ def run(args: argparse.Namespace) -> int:
         os.environ["QR_CL_DEVICE"] = args.device
     out = Path(args.out)
     start = time.perf_counter()
-    run_sweep("smoke" if args.smoke else "quick" if args.quick else "full", out)
+    run_sweep("smoke" if args.smoke else "quick" if args.quick else "full", out,
+              Path(args.data) if args.data else None)
     print((out / "summary.md").read_text())
     print(f"bench finished in {time.perf_counter() - start:.0f} s. Report: {out.resolve()} "
           "(report.json, summary.md, time_vs_k.png, time_vs_c.png, roofline.png, complexity.png)")

@@ -1,0 +1,182 @@
+"""The public renderers, as stages: colour -> plan (project, bin/sort) -> select -> blend.
+
+:func:`rasterize` renders through a stored Selection (any sampler, pixel subsets, gradients w.r.t.
+the features); :func:`render_volume_fused` is the fused V-Render kernel (whole images, no
+gradients, expected depth). Both take the same scene and camera arguments.
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from ..runtime import Runtime, channel_layout, check_channels, padded_rows, runtime, to_device
+from ..stages.binning import RasterPlan, bin_and_sort
+from ..stages.project import project
+from ..stages.select import check_pixels, check_sampler, select
+from ..stages.sh import sh_colors
+from ..stages.vrender import render_fused
+from .autograd import blend
+from .cache import SelectionCache, selection_key
+
+
+def _host(x, name: str, shape: tuple) -> np.ndarray:
+    """A float32 numpy view/copy of a tensor or array, with its shape checked (-1 = any)."""
+    a = x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
+    if a.ndim != len(shape) or any(s != -1 and s != d for s, d in zip(shape, a.shape)):
+        raise ValueError(f"{name} has shape {tuple(a.shape)}, expected {tuple('N' if s == -1 else s for s in shape)}")
+    return np.ascontiguousarray(a, np.float32)
+
+
+def rasterize_plan(means: np.ndarray, quats: np.ndarray, scales: np.ndarray, opacities: np.ndarray,
+                   viewmat: np.ndarray, K: np.ndarray, width: int, height: int,
+                   near: float = 0.01, far: float = 1e10, rt: Runtime | None = None) -> RasterPlan:
+    """Project, bin and sort Gaussians for one camera (geometry only).
+
+    means [N,3], quats [N,4] unit w,x,y,z, scales [N,3] activated, opacities [N] activated (float32
+    host arrays, N >= 1); viewmat [4,4] world-to-camera; K [3,3] intrinsics in px; width/height in px.
+    """
+    rt = rt or runtime()
+    dev = [to_device(rt, a) for a in (means, quats, scales, opacities)]
+    splats, radii, rects, touched = project(rt, *dev, viewmat, np.asarray(K), width, height, near, far)
+    ranges, ids, n_keys = bin_and_sort(rt, splats, rects, touched, width, height)
+    return RasterPlan(rt, int(width), int(height), splats, radii, ranges, ids, n_keys)
+
+
+class _Scene:
+    """The checked host arrays of one render call, with the colour stage applied: features [N,C]
+    (a tensor when given one, so gradients can flow) or RGB from SH (``sh_degree`` set)."""
+
+    def __init__(self, means, quats, scales, opacities, features, viewmat, K, sh_degree, background):
+        self.means = _host(means, "means", (-1, 3))
+        n = len(self.means)
+        self.quats = _host(quats, "quats", (n, 4))
+        self.scales = _host(scales, "scales", (n, 3))
+        self.opacities = _host(opacities, "opacities", (n,))
+        self.viewmat = _host(viewmat, "viewmat", (4, 4))
+        self.K = _host(K, "K", (3, 3))
+        if sh_degree is None:
+            self.features = features if isinstance(features, torch.Tensor) else \
+                torch.from_numpy(_host(features, "features", (n, -1)))
+            if self.features.ndim != 2 or self.features.shape[0] != n:
+                raise ValueError(f"features has shape {tuple(self.features.shape)}, expected (N, C)")
+        else:
+            self.features = torch.from_numpy(self._rgb_from_sh(features, sh_degree))
+        self.channels = self.features.shape[1]
+        check_channels(self.channels)
+        self.background = background if background is None or isinstance(background, torch.Tensor) else \
+            torch.from_numpy(_host(background, "background", (self.channels,)))
+        if self.background is not None and tuple(self.background.shape) != (self.channels,):
+            raise ValueError(f"background has shape {tuple(self.background.shape)}, expected ({self.channels},)")
+
+    def _rgb_from_sh(self, features, sh_degree: int) -> np.ndarray:
+        """The colour stage: view-dependent RGB [N,3] from SH coefficients [N,(d+1)^2,3]."""
+        n = len(self.means)
+        sh = _host(features, "features (SH coefficients)", (n, -1, 3))
+        if sh.shape[1] < (sh_degree + 1) ** 2:
+            raise ValueError(f"sh_degree={sh_degree} needs {(sh_degree + 1) ** 2} coefficients per "
+                             f"Gaussian, features have {sh.shape[1]}")
+        if n == 0:
+            return np.zeros((0, 3), np.float32)
+        rt = runtime()
+        campos = -self.viewmat[:3, :3].T @ self.viewmat[:3, 3]
+        rgb = sh_colors(rt, to_device(rt, self.means), np.ascontiguousarray(sh[:, :(sh_degree + 1) ** 2]), campos)
+        return rgb.get()[:, :3].copy()
+
+    def plan(self, width: int, height: int, near: float, far: float) -> RasterPlan:
+        return rasterize_plan(self.means, self.quats, self.scales, self.opacities, self.viewmat, self.K,
+                              width, height, near, far)
+
+    def empty(self, shape: tuple[int, ...]) -> tuple[torch.Tensor, torch.Tensor, dict]:
+        """The render of no Gaussians: the background (black if None), alpha 0, and a meta with
+        the keys of a non-empty render."""
+        bg = torch.zeros(self.channels) if self.background is None else self.background.detach().float()
+        zeros = np.zeros((*shape, 1), np.float32)
+        meta = {"means2d": np.zeros((0, 2), np.float32), "conics": np.zeros((0, 3), np.float32),
+                "opacities": np.zeros(0, np.float32), "depths": np.zeros(0, np.float32),
+                "radii": np.zeros(0, np.int32), "tile_ranges": np.zeros((0, 2), np.int32),
+                "flatten_ids": np.zeros(0, np.int32), "n_keys": 0}
+        return bg.expand(*shape, self.channels).clone(), torch.from_numpy(zeros), meta
+
+
+def rasterize(means, quats, scales, opacities, features, viewmat, K, width: int, height: int,
+              sampler: str = "volume", k: int = 40, sh_degree: int | None = None,
+              near: float = 0.01, far: float = 1e10, background=None, pixels=None,
+              cache: SelectionCache | None = None):
+    """Render C-dim features (or RGB from SH) of 3D Gaussians for one pinhole camera through a
+    Selection: plan (project, bin/sort) -> select (``sampler``) -> blend.
+
+    Args:
+        means [N,3], quats [N,4] unit w,x,y,z, scales [N,3] activated (world units),
+        opacities [N] activated in [0,1]: torch float32 CPU tensors (numpy arrays work too).
+        features: [N,C] per-Gaussian features, C in 1..2048; or, with ``sh_degree`` set,
+            SH coefficients [N,(d+1)^2,3] (d >= sh_degree; the first (sh_degree+1)^2 are used)
+            evaluated per view into RGB (the colour stage, as gsplat's ``colors`` with ``sh_degree``).
+        viewmat: [4,4] world-to-camera (OpenCV axes: x right, y down, z forward).
+        K: [3,3] intrinsics in pixels. width, height: image size in pixels.
+        sampler: "volume" (full alpha blending, V-Render), "quantile" (Q-Render, Algorithm 1 with
+            K = ``k``) or "topk" (the ``k`` largest V-Render weights, blended as Q-Render does).
+            For the fused V-Render kernel (no stored selection) call :func:`render_volume_fused`.
+        near, far: depth culling planes (camera z, world units).
+        background: [C] blended with the background weight of each ray, or None (black): the
+            remaining transmittance for volume; for quantile/topk (whose normalized weights sum
+            to 1) it shows only through rays that selected no Gaussian.
+        pixels: None (the whole image) or [P,2] integer (x, y) pixel coordinates: render only those
+            rays (cost proportional to P).
+        cache: an optional :class:`qr_cl.render.SelectionCache`: the Selection (and its
+            RasterPlan) of the same geometry, camera, sampler, K and rays is then reused instead
+            of recomputed.
+
+    Returns:
+        render [H,W,C] (or [P,C] for ``pixels``) float32, alpha [H,W,1] (or [P,1]): 1 - the
+        transmittance where the ray's walk stopped (for quantile the walk stops once T < 1/(K+1)),
+        and a meta dict with means2d [N,2] (px), conics [N,3], depths [N] (camera z), radii [N]
+        int32 (0 = culled), opacities [N], tile_ranges [tiles,2], flatten_ids, n_keys and (for
+        N >= 1) the ``selection`` used (:class:`qr_cl.stages.select.Selection`).
+
+        The render is differentiable w.r.t. ``features`` (a [N,C] tensor with requires_grad) and
+        ``background`` through :class:`qr_cl.render.autograd.BlendFunction`. No gradient is
+        produced for means, quats, scales, opacities, viewmat or K (the Gaussians are frozen in
+        GS-Net), nor for SH coefficients (``sh_degree`` set).
+    """
+    k = check_sampler(sampler, k)
+    if pixels is not None:
+        pixels = check_pixels(pixels, width, height)
+    scene = _Scene(means, quats, scales, opacities, features, viewmat, K, sh_degree, background)
+    if len(scene.means) == 0:
+        return scene.empty((height, width) if pixels is None else (len(pixels),))
+
+    def make_selection():
+        return select(scene.plan(width, height, near, far), sampler, k, pixels)
+    if cache is None:
+        sel = make_selection()
+    else:
+        sel = cache.get(selection_key(scene.means, scene.quats, scene.scales, scene.opacities,
+                                      scene.viewmat, scene.K, width, height, near, far, sampler, k,
+                                      pixels), make_selection)
+    render = blend(sel, scene.features, scene.background)
+    alpha = torch.from_numpy(1 - sel.t_walk.get()[:sel.n_rays, None])
+    meta = {**sel.plan.meta(), "selection": sel}
+    if pixels is None:
+        render, alpha = render.reshape(height, width, scene.channels), alpha.reshape(height, width, 1)
+    return render, alpha, meta
+
+
+def render_volume_fused(means, quats, scales, opacities, features, viewmat, K, width: int, height: int,
+                        sh_degree: int | None = None, near: float = 0.01, far: float = 1e10,
+                        background=None):
+    """V-Render of a whole image in one fused kernel (no stored selection, no gradients): the
+    same weights and summation order as ``rasterize(..., sampler="volume")``, the same image.
+
+    Arguments as :func:`rasterize`. Returns image [H,W,C], alpha [H,W,1] (1 - T) and a meta dict
+    with the plan's keys (means2d, conics, depths, radii, opacities, tile_ranges, flatten_ids,
+    n_keys) and ``depth`` [H,W,1], the expected depth (camera z; 0 where nothing was hit).
+    """
+    scene = _Scene(means, quats, scales, opacities, features, viewmat, K, sh_degree, background)
+    if len(scene.means) == 0:
+        image, alpha, meta = scene.empty((height, width))
+        return image, alpha, {**meta, "depth": alpha.numpy().copy()}
+    plan = scene.plan(width, height, near, far)
+    rows = padded_rows(scene.features.detach().cpu().numpy(), channel_layout(scene.channels)[2])
+    bg = None if scene.background is None else scene.background.detach().cpu().numpy()
+    image, alpha, depth = render_fused(plan, to_device(plan.runtime, rows), scene.channels, bg)
+    return torch.from_numpy(image), torch.from_numpy(alpha), {**plan.meta(), "depth": depth}

@@ -1,0 +1,44 @@
+"""The constants of the 3DGS conventions and of qr-cl, defined once.
+
+The kernels see the same values: every program is built with ``-D NAME=value`` for each entry of
+:data:`KERNEL_CONSTANTS` (see :mod:`qr_cl.runtime.device`), so ``kernels/common.h`` defines none.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+TILE = 16                          # tiles are TILE x TILE pixels
+ALPHA_MIN = np.float32(1) / np.float32(255)   # Gaussians with a smaller alpha are skipped
+ALPHA_MAX = np.float32(0.99)       # alpha is clamped here
+T_MIN = np.float32(1e-4)           # V-Render stops before T would drop to this
+MAX_CHANNELS = 2048                # feature channels a render supports (1..MAX_CHANNELS)
+
+#: Samplers of the selection stage (``qr_cl.stages.select``): which Gaussians a ray blends.
+SAMPLERS = ("volume", "quantile", "topk")
+
+#: Real spherical-harmonic basis constants (original 3DGS computeColorFromSH), degrees 0..3.
+SH_C0 = 0.28209479177387814
+SH_C1 = 0.4886025119029199
+SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792,
+         0.5462742152960396)
+SH_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
+         -0.4570457994644658, 1.445305721320277, -0.5900435899266435)
+
+
+def _float_literal(x: float) -> str:
+    """OpenCL C float literal of float32(x) (9 significant digits round-trip a float32)."""
+    text = f"{np.float32(x):.9g}f"
+    return f"({text})" if text.startswith("-") else text
+
+
+def _kernel_constants() -> dict[str, str]:
+    out = {"TILE": str(TILE), "ALPHA_MIN": _float_literal(ALPHA_MIN),
+           "ALPHA_MAX": _float_literal(ALPHA_MAX), "T_MIN": _float_literal(T_MIN),
+           "SH_C0": _float_literal(SH_C0), "SH_C1": _float_literal(SH_C1)}
+    for name, values in (("SH_C2", SH_C2), ("SH_C3", SH_C3)):
+        out.update({f"{name}_{i}": _float_literal(v) for i, v in enumerate(values)})
+    return out
+
+
+#: ``-D`` definitions every kernel program is built with (name -> OpenCL C literal).
+KERNEL_CONSTANTS: dict[str, str] = _kernel_constants()

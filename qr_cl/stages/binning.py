@@ -1,0 +1,117 @@
+"""Binning and depth sort (binning.cl): splats -> per-tile depth-sorted Gaussian lists.
+
+Exclusive scan of the tiles each Gaussian touches -> ``emit_keys`` (one key per Gaussian and
+touched tile: ``tile << 32 | depth bits``) -> sort -> ``tile_ranges``. The result, with the
+splats it indexes, is a :class:`RasterPlan`: geometry only, never features, so one plan serves
+every channel count and sampler. Twin: :mod:`qr_cl.stages.binning_ref`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+import pyopencl as cl
+import pyopencl.array as cla
+from pyopencl.algorithm import RadixSort
+
+from ..runtime import Runtime, exclusive_scan, last_value
+from .project import tile_grid
+
+
+@dataclass
+class RasterPlan:
+    """Everything the per-pixel kernels need, on the device.
+
+    splats [N,8] float32 (mean2d x, y in px; conic a, b, c; opacity; depth; 0), radii [N] int32
+    (0 = culled), ranges [tiles, 2] int32 [start, end) into ids, ids [max(M,1)] int32 depth-sorted
+    Gaussian ids per tile (M = n_keys; one unused entry when M = 0), width/height in px.
+    Needs N >= 1 (callers handle empty scenes).
+    """
+
+    runtime: Runtime
+    width: int
+    height: int
+    splats: cla.Array
+    radii: cla.Array
+    ranges: cla.Array
+    ids: cla.Array
+    n_keys: int
+
+    @property
+    def tiles_x(self) -> int:
+        return tile_grid(self.width, self.height)[0]
+
+    @property
+    def tiles_y(self) -> int:
+        return tile_grid(self.width, self.height)[1]
+
+    @property
+    def n_gaussians(self) -> int:
+        return self.splats.shape[0]
+
+    @property
+    def nbytes(self) -> int:
+        """Device bytes held by the plan."""
+        return self.splats.nbytes + self.radii.nbytes + self.ranges.nbytes + self.ids.nbytes
+
+    def ray_args(self) -> dict:
+        """The tile-list arguments every per-ray kernel declares (RAY_ARGS in kernels/select.cl)."""
+        return {"ranges": self.ranges, "ids": self.ids, "splats": self.splats, "width": self.width,
+                "height": self.height, "tiles_x": self.tiles_x}
+
+    def meta(self) -> dict[str, np.ndarray]:
+        """Host copies: means2d [N,2] px, conics [N,3], depths [N], radii [N] int32, opacities [N],
+        tile_ranges [tiles,2] [start, end) into flatten_ids [M] (depth-sorted Gaussian ids per
+        tile, as gsplat names them), n_keys = M."""
+        s = self.splats.get().reshape(-1, 8)
+        return {"means2d": s[:, 0:2].copy(), "conics": s[:, 2:5].copy(), "opacities": s[:, 5].copy(),
+                "depths": s[:, 6].copy(), "radii": self.radii.get(),
+                "tile_ranges": self.ranges.get().reshape(-1, 2),
+                "flatten_ids": self.ids.get()[:self.n_keys], "n_keys": self.n_keys}
+
+
+@lru_cache(maxsize=None)
+def radix_sorter(context: cl.Context) -> RadixSort:
+    """pyopencl's RadixSort of (uint64 key, int32 value) pairs for ``context`` (built once)."""
+    return RadixSort(context, "ulong *keys, int *values", key_expr="keys[i]",
+                     sort_arg_names=["keys", "values"], key_dtype=np.uint64)
+
+
+def sort_pairs(rt: Runtime, keys: cla.Array, values: cla.Array, key_bits: int) -> tuple[cla.Array, cla.Array]:
+    """Sort (key, value) pairs by the low ``key_bits`` bits of the uint64 keys.
+
+    On a CPU device the host is the device: numpy's stable argsort on the mapped data is much
+    faster than pyopencl's GPU-style RadixSort there (see bench/test_bench_binning.py). On other
+    devices pyopencl's RadixSort runs on the device.
+    """
+    if rt.is_cpu:
+        host_keys = keys.get()
+        order = np.argsort(host_keys, kind="stable")
+        return (cla.to_device(rt.queue, host_keys[order]), cla.to_device(rt.queue, values.get()[order]))
+    (sorted_keys, sorted_values), _ = radix_sorter(rt.context)(keys, values, key_bits=key_bits)
+    return sorted_keys, sorted_values
+
+
+def bin_and_sort(rt: Runtime, splats: cla.Array, rects: cla.Array, touched: cla.Array,
+                 width: int, height: int) -> tuple[cla.Array, cla.Array, int]:
+    """Keys per (Gaussian, tile), sorted by tile then depth, from :func:`qr_cl.stages.project.project`.
+
+    Returns (ranges [tiles,2], ids [max(M,1)], M) for M keys.
+    """
+    n = touched.size
+    tiles_x, tiles_y = tile_grid(width, height)
+    n_tiles = tiles_x * tiles_y
+    ranges = cla.zeros(rt.queue, (n_tiles, 2), np.int32)
+    offsets = exclusive_scan(rt, touched, cla.empty_like(touched))
+    m = last_value(offsets) + last_value(touched)
+    if m == 0:
+        return ranges, cla.zeros(rt.queue, 1, np.int32), 0
+    keys = cla.empty(rt.queue, m, np.uint64)
+    values = cla.empty(rt.queue, m, np.int32)
+    rt.launch("emit_keys", n, n=n, rects=rects, offsets=offsets, splats=splats, tiles_x=tiles_x,
+              keys=keys, values=values)
+    key_bits = 32 + max(1, int(n_tiles - 1).bit_length())
+    keys, ids = sort_pairs(rt, keys, values, key_bits)
+    rt.launch("tile_ranges", m, m=m, keys=keys, ranges=ranges)
+    return ranges, ids, m

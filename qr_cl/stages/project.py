@@ -1,0 +1,36 @@
+"""Projection stage (project.cl): 3D Gaussians + pinhole camera -> 2D splats, one work-item per
+Gaussian, EWA with the 0.3 px low-pass of 3DGS. Twin: :mod:`qr_cl.stages.project_ref`."""
+from __future__ import annotations
+
+import numpy as np
+import pyopencl.array as cla
+
+from ..runtime import Runtime, TILE, to_device
+
+
+def tile_grid(width: int, height: int) -> tuple[int, int]:
+    """(tiles_x, tiles_y): TILE x TILE tiles covering a width x height image."""
+    return (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
+
+
+def project(rt: Runtime, means: cla.Array, quats: cla.Array, scales: cla.Array, opacities: cla.Array,
+            viewmat: np.ndarray, K: np.ndarray, width: int, height: int, near: float, far: float
+            ) -> tuple[cla.Array, cla.Array, cla.Array, cla.Array]:
+    """Run project.cl on device arrays means [N,3], quats [N,4] (unit w,x,y,z), scales [N,3],
+    opacities [N] (activated), for viewmat [4,4] world-to-camera and K [3,3] (px).
+
+    Returns splats [N,8] (mean2d x, y px; conic a, b, c; opacity; depth; 0), radii [N] int32
+    (0 = culled), rects [N,4] int32 tile rectangle [x0, y0, x1, y1) and tiles_touched [N] int32.
+    """
+    n = means.shape[0]
+    tiles_x, tiles_y = tile_grid(width, height)
+    splats = cla.empty(rt.queue, (n, 8), np.float32)
+    radii = cla.empty(rt.queue, n, np.int32)
+    rects = cla.empty(rt.queue, (n, 4), np.int32)
+    touched = cla.empty(rt.queue, n, np.int32)
+    rt.launch("project", n, n=n, means=means, quats=quats, scales=scales, opacities=opacities,
+              viewmat=to_device(rt, np.asarray(viewmat).reshape(16)),
+              fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], width=width, height=height,
+              near=near, far=far, tiles_x=tiles_x, tiles_y=tiles_y,
+              splats=splats, radii=radii, rects=rects, tiles_touched=touched)
+    return splats, radii, rects, touched

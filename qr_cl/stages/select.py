@@ -1,0 +1,207 @@
+"""Selection stage (select.cl, transpose.cl): which Gaussians each ray blends, with what weight.
+
+A Selection depends only on geometry, camera, sampler and K, never on features: it is computed
+once per view and shared by the blend forward and backward (:mod:`qr_cl.stages.blend`).
+Twin: :mod:`qr_cl.stages.select_ref`.
+
+Samplers:
+    ``volume``   every Gaussian V-Render blends (alpha >= 1/255, until T would drop to <= 1e-4),
+                 w_i = T_i alpha'_i; background weight = the final T.
+    ``quantile`` Algorithm 1 of the paper (K quantile Gaussians), w = T^Q alpha' / (1 - T^Q).
+    ``topk``     the K largest V-Render weights, re-composited in depth order among the selected,
+                 normalized by 1 / (1 - T) as Q-Render.
+For quantile and topk the normalized weights sum to 1, so the background only shows through rays
+that selected nothing (background weight 1 there, 0 elsewhere).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import pyopencl.array as cla
+
+from ..runtime import SAMPLERS, TILE, exclusive_scan, last_value
+from .binning import RasterPlan
+
+MAX_CHUNKS = 64               # rays are split into at most this many chunks for the transpose
+MAX_HIST = 1 << 24            # ... and n_gaussians * chunks stays below this many ints
+
+
+@dataclass
+class Selection:
+    """Per-ray (Gaussian id, weight) lists on the device.
+
+    Rays: the whole image (``pixels is None``, ray p = y * width + x) or a pixel subset
+    (``pixels`` [P,2] int32 (x, y), ray p = row p). Entries of ray p are
+    ``[offsets[p], offsets[p] + count[p])`` of ``ids`` / ``weights`` (int32 / float32; quantile
+    and topk: dense rows of K at p * K, padded with -1 / 0). Per ray (float32 [P]): ``t_walk`` the
+    transmittance where the ray's walk stopped, ``t_sel`` the transmittance among the selected
+    Gaussians before normalization (T^Q; the final T for volume), ``t_rem`` the background weight.
+    ``k`` is K (0 for volume); ``n_gaussians`` is N of the plan. ``transposed`` caches
+    :meth:`transpose` (the blend backward's view of the selection).
+    """
+
+    plan: RasterPlan
+    sampler: str
+    k: int
+    pixels: np.ndarray | None
+    ids: cla.Array
+    weights: cla.Array
+    offsets: cla.Array
+    count: cla.Array
+    t_walk: cla.Array
+    t_sel: cla.Array
+    t_rem: cla.Array
+    transposed: tuple | None = field(default=None, repr=False)
+
+    @property
+    def n_rays(self) -> int:
+        return self.plan.width * self.plan.height if self.pixels is None else len(self.pixels)
+
+    @property
+    def n_gaussians(self) -> int:
+        return self.plan.n_gaussians
+
+    @property
+    def nbytes(self) -> int:
+        """Device bytes held by the selection (and its cached transpose)."""
+        arrays = [self.ids, self.weights, self.offsets, self.count, self.t_walk, self.t_sel, self.t_rem]
+        arrays += [a for a in self.transposed or () if isinstance(a, cla.Array)]
+        return sum(a.nbytes for a in arrays)
+
+    def launch(self) -> tuple[int, int]:
+        """(global size of a per-ray kernel, full-image flag)."""
+        return ray_launch(self.plan, self.pixels)
+
+    def transpose(self) -> tuple[cla.Array, cla.Array, cla.Array, int]:
+        """The entries grouped by Gaussian (transpose.cl: stable counting sort, no atomics),
+        computed once and kept in ``transposed``.
+
+        Returns (cursor [N * chunks] int32: cursor[(g+1) * chunks - 1] is the end of Gaussian g's
+        segment, ray [E] int32 and weight [E] float32 per transposed entry, chunks). Within a
+        Gaussian, entries are ordered by ray then by position in the ray.
+        """
+        if self.transposed is None:
+            rt = self.plan.runtime
+            q = rt.queue
+            n, n_rays = self.n_gaussians, self.n_rays
+            chunks = max(1, min(MAX_CHUNKS, n_rays, MAX_HIST // max(n, 1)))
+            rays_per = -(-n_rays // chunks) if n_rays else 1
+            cursor = cla.zeros(q, n * chunks, np.int32)
+            total = int(cla.sum(self.count).get()) if n_rays else 0
+            t_ray = cla.empty(q, max(total, 1), np.int32)
+            t_w = cla.empty(q, max(total, 1), np.float32)
+            if n_rays:
+                args = dict(n_rays=n_rays, rays_per=rays_per, n_chunks=chunks, offsets=self.offsets,
+                            count=self.count, sel_ids=self.ids)
+                rt.launch("transpose_count", chunks, **args, hist=cursor)
+                exclusive_scan(rt, cursor)
+                rt.launch("transpose_fill", chunks, **args, sel_w=self.weights, cursor=cursor,
+                          t_ray=t_ray, t_w=t_w)
+            self.transposed = (cursor, t_ray, t_w, chunks)
+        return self.transposed
+
+    def host(self) -> dict[str, np.ndarray]:
+        """Host copies as dense arrays: ids [P,L] (-1 padded) and weights [P,L] (0 padded) with L the
+        longest list, count, t_walk, t_sel, t_rem [P]."""
+        n = self.n_rays
+        count, offsets = self.count.get()[:n], self.offsets.get()[:n]
+        width = int(count.max(initial=0))
+        cols = np.arange(width)
+        valid = cols[None] < count[:, None]
+        index = np.where(valid, offsets[:, None] + cols[None], 0)
+        ids_all, w_all = self.ids.get(), self.weights.get()
+        ids = np.where(valid, ids_all[index] if ids_all.size else 0, -1).astype(np.int32)
+        w = np.where(valid, w_all[index] if w_all.size else 0, 0).astype(np.float32)
+        return {"ids": ids, "weights": w, "count": count, "t_walk": self.t_walk.get()[:n],
+                "t_sel": self.t_sel.get()[:n], "t_rem": self.t_rem.get()[:n]}
+
+
+
+def check_pixels(pixels, width: int, height: int) -> np.ndarray:
+    """pixels [P,2] integer (x, y) as a contiguous int32 array; ValueError if malformed or outside
+    the width x height image."""
+    arr = np.asarray(pixels)
+    if arr.ndim != 2 or arr.shape[1] != 2:
+        raise ValueError(f"pixels must have shape [P, 2] (x, y), got {arr.shape}")
+    if arr.size and not np.issubdtype(arr.dtype, np.integer):
+        raise ValueError(f"pixels must be integer coordinates, got dtype {arr.dtype}")
+    arr = arr.astype(np.int64)
+    bad = (arr[:, 0] < 0) | (arr[:, 0] >= width) | (arr[:, 1] < 0) | (arr[:, 1] >= height)
+    if bad.any():
+        x, y = arr[np.argmax(bad)]
+        raise ValueError(f"{int(bad.sum())} pixel(s) outside the {width}x{height} image, e.g. ({x}, {y})")
+    return np.ascontiguousarray(arr, np.int32)
+
+
+def ray_launch(plan: RasterPlan, pixels: np.ndarray | None) -> tuple[int, int]:
+    """(global size, full-image flag) of a per-ray kernel: the whole image is launched tile-major
+    over whole tiles (padding rays return at once), a pixel subset one work-item per pixel."""
+    if pixels is None:
+        return plan.tiles_x * plan.tiles_y * TILE * TILE, 1
+    return len(pixels), 0
+
+
+def check_sampler(sampler: str, k) -> int:
+    """K as an int (0 for volume, which has none); ValueError for an unknown sampler or a K that
+    is not an integer >= 1."""
+    if sampler not in SAMPLERS:
+        raise ValueError(f"sampler={sampler!r}: available samplers are {SAMPLERS}")
+    if sampler == "volume":
+        return 0
+    if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1:
+        raise ValueError(f"k must be an integer >= 1 for sampler={sampler!r} (K must be at least one "
+                         f"Gaussian per ray), got {k!r}")
+    return int(k)
+
+
+def select(plan: RasterPlan, sampler: str = "quantile", k: int = 40, pixels=None) -> Selection:
+    """Run the selection kernel of ``sampler`` ("volume", "quantile" or "topk") with K = ``k``
+    (ignored by volume) for the whole image or the rays ``pixels`` [P,2] (x, y) in px.
+
+    Cost is proportional to the number of rays (and their tile lists), not to width * height.
+    """
+    k = check_sampler(sampler, k)
+    rt = plan.runtime
+    q = rt.queue
+    if pixels is not None:
+        pixels = check_pixels(pixels, plan.width, plan.height)
+    n_rays = plan.width * plan.height if pixels is None else len(pixels)
+    count, t_walk, t_sel, t_rem = (cla.empty(q, max(n_rays, 1), dt)
+                                   for dt in (np.int32, np.float32, np.float32, np.float32))
+    if n_rays == 0:
+        return Selection(plan, sampler, k, pixels, cla.empty(q, 1, np.int32), cla.empty(q, 1, np.float32),
+                         cla.zeros(q, 1, np.int32), count, t_walk, t_sel, t_rem)
+    size, full = ray_launch(plan, pixels)
+    rays = dict(plan.ray_args(), full=full, pixels=cla.to_device(q, pixels if pixels is not None
+                                                              else np.zeros((1, 2), np.int32)))
+    if sampler == "volume":
+        offsets = cla.zeros(q, n_rays, np.int32)
+        rt.launch("volume_count", size, **rays, count=count, t_walk=t_walk)
+        exclusive_scan(rt, count, offsets)
+        total = last_value(offsets) + last_value(count[:n_rays])
+        ids, weights = cla.empty(q, max(total, 1), np.int32), cla.empty(q, max(total, 1), np.float32)
+        rt.launch("volume_fill", size, **rays, offsets=offsets, out_ids=ids, out_w=weights,
+                  t_sel=t_sel, t_rem=t_rem)
+    else:
+        ids, weights = cla.empty(q, n_rays * k, np.int32), cla.empty(q, n_rays * k, np.float32)
+        offsets = cla.arange(q, 0, n_rays * k, k, dtype=np.int32)
+        rt.launch(f"select_{sampler}", size, **rays, K=k, out_ids=ids, out_w=weights, count=count,
+                  t_walk=t_walk, t_sel=t_sel, t_rem=t_rem)
+    return Selection(plan, sampler, k, pixels, ids, weights, offsets, count, t_walk, t_sel, t_rem)
+
+
+def transmittance_profile(selection: Selection, ray: int) -> tuple[np.ndarray, np.ndarray]:
+    """Transmittance along ray ``ray`` as its sampler sees it: (depths [n] of the selected
+    Gaussians in camera z, T [n+1] before the first and after each selected Gaussian).
+
+    volume: T_i of the full walk; quantile/topk: T^Q among the selected (un-normalized). This is
+    what the paper's Fig. 3 plots (see :func:`qr_cl.app.images.plot_transmittance_profiles`).
+    """
+    h = selection.host()
+    n = int(h["count"][ray])
+    ids, w = h["ids"][ray, :n], h["weights"][ray, :n].astype(np.float64)
+    scale = 1.0 if selection.sampler == "volume" else 1.0 - float(h["t_sel"][ray])
+    t = 1.0 - np.concatenate([[0.0], np.cumsum(w * scale)])
+    depths = selection.plan.splats.get().reshape(-1, 8)[ids, 6] if n else np.zeros(0, np.float32)
+    return depths, t

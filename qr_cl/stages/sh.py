@@ -1,0 +1,28 @@
+"""Spherical-harmonic colour stage (sh.cl): SH coefficients + camera position -> RGB per Gaussian.
+Twin: :mod:`qr_cl.stages.sh_ref`."""
+from __future__ import annotations
+
+import numpy as np
+import pyopencl.array as cla
+
+from ..runtime import Runtime, to_device
+
+
+def sh_degree_of(sh: np.ndarray) -> int:
+    """The degree d of SH coefficients [N,(d+1)^2,3], d <= 3; ValueError otherwise."""
+    degree = int(round(np.sqrt(sh.shape[1]))) - 1 if sh.ndim == 3 else -1
+    if sh.ndim != 3 or (degree + 1) ** 2 != sh.shape[1] or degree > 3 or sh.shape[2] != 3:
+        raise ValueError(f"SH coefficients must be [N, (d+1)^2, 3] with d <= 3, got {sh.shape}")
+    return degree
+
+
+def sh_colors(rt: Runtime, means: cla.Array, sh: np.ndarray, campos: np.ndarray) -> cla.Array:
+    """View-dependent RGB [N,4] (4th channel 0) on the device from SH coefficients
+    sh [N,(d+1)^2,3] (d <= 3), Gaussian centres ``means`` [N,3] and the camera centre campos [3]."""
+    n = sh.shape[0]
+    degree = sh_degree_of(sh)
+    colors = cla.zeros(rt.queue, (max(n, 1), 4), np.float32)
+    if n:
+        rt.launch("sh_to_rgb", n, defines={"DEGREE": degree}, n=n, means=means,
+                  sh=to_device(rt, sh), campos=campos, colors=colors)
+    return colors[:n]

@@ -1,0 +1,41 @@
+"""Fused V-Render stage (vrender.cl): full alpha blending of a RasterPlan without a stored
+selection, one kernel per image (the speed baseline; no gradients). Twin:
+:mod:`qr_cl.stages.vrender_ref`."""
+from __future__ import annotations
+
+import numpy as np
+import pyopencl.array as cla
+
+from ..runtime import TILE, channel_layout, host_output, padded_vector, to_device
+from .binning import RasterPlan
+
+
+def render_fused(plan: RasterPlan, features: cla.Array, channels: int,
+                 background: np.ndarray | None = None,
+                 out: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Blend every Gaussian V-Render uses (alpha >= 1/255, until T <= 1e-4) in one kernel.
+
+    features [N, cstride] on the device with cstride from :func:`channel_layout` (channels);
+    background [channels] or None. Returns image [H,W,channels], alpha [H,W,1] (1 - T) and
+    expected depth [H,W,1] (sum of w_i z_i / (1 - T); 0 where nothing was hit), float32.
+    ``out``: an optional C-contiguous float32 [H,W,cstride] host array to render into (reusing one
+    avoids the page faults of a fresh large allocation); with C == cstride the image is a view of it.
+    """
+    rt = plan.runtime
+    vw, nv, cstride = channel_layout(channels)
+    if features.shape[-1] != cstride:
+        raise ValueError(f"features have row length {features.shape[-1]}, expected {cstride}")
+    h, w = plan.height, plan.width
+    image = np.empty((h, w, cstride), np.float32) if out is None else out
+    if image.shape != (h, w, cstride) or image.dtype != np.float32 or not image.flags.c_contiguous:
+        raise ValueError(f"out must be a C-contiguous float32 array of shape {(h, w, cstride)}")
+    alpha = cla.empty(rt.queue, h * w, np.float32)
+    depth = cla.empty(rt.queue, h * w, np.float32)
+    with host_output(rt, image) as image_buf:
+        rt.launch("vrender", plan.tiles_x * plan.tiles_y * TILE * TILE, defines={"VW": vw, "NV": nv},
+                  ranges=plan.ranges, ids=plan.ids, splats=plan.splats, features=features,
+                  cstride=cstride, width=w, height=h, tiles_x=plan.tiles_x,
+                  background=to_device(rt, padded_vector(background, channels, cstride)),
+                  use_bg=background is not None, image=image_buf, alpha=alpha, depth=depth)
+    img = image if cstride == channels else np.ascontiguousarray(image[:, :, :channels])
+    return img, alpha.get().reshape(h, w, 1), depth.get().reshape(h, w, 1)
