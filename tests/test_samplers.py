@@ -7,6 +7,7 @@ import pytest
 import qr_cl
 from qr_cl.stages import blend_ref, select_ref
 from qr_cl.render import rasterize_plan
+from qr_cl.runtime import TILE
 from qr_cl.app.images import plot_transmittance_profiles
 from qr_cl.stages import Selection, select, transmittance_profile
 
@@ -45,7 +46,7 @@ def compare(plan, sel: Selection, pixels: np.ndarray, sampler: str, k: int) -> i
     if sampler == "quantile":   # a differing ray must have a transmittance at a boundary
         tiles_x = plan.tiles_x
         for x, y in pixels[~same]:
-            start, end = meta["tile_ranges"][(y // 16) * tiles_x + x // 16]
+            start, end = meta["tile_ranges"][(y // TILE) * tiles_x + x // TILE]
             ids = plan.ids.get()[start:end]
             assert select_ref.quantile_margin(select_ref.alphas(meta, ids, np.array([[x, y]]))[0], k) < 1e-5
     return int((~same).sum())

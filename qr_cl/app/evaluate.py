@@ -40,7 +40,7 @@ def pseudo_labels(gaussians: Gaussians, points: np.ndarray, labels: np.ndarray, 
     n = len(gaussians)
     if len(points) == 0:
         return np.full(n, -1, np.int64)
-    import open3d as o3d  # function-local: open3d takes ~0.9 s to import and only the pseudo labels needs it
+    import open3d as o3d  # function-local: open3d takes ~0.9 s to import and only the pseudo labels need it
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
     tree = o3d.geometry.KDTreeFlann(cloud)
     k = min(k, len(points))

@@ -7,28 +7,35 @@ from ..runtime import SH_C0
 from ..scene import Gaussians
 
 
-def _surface_gaussians(points: np.ndarray, normals: np.ndarray, rgb: np.ndarray, size: float,
-                       rng: np.random.Generator) -> Gaussians:
-    """Flat Gaussians on a surface: the thin axis (z of the local frame) along the normal."""
+def surface_gaussians(points: np.ndarray, normals: np.ndarray, rgb: np.ndarray, size: float,
+                      rng: np.random.Generator, jitter: tuple[float, float] = (0.7, 1.3),
+                      colour_noise: float = 0.04, opacity: tuple[float, float] = (0.8, 0.99),
+                      sh_degree: int = 1) -> Gaussians:
+    """Flat Gaussians on a surface: points [n,3] and unit normals [n,3] (world units), the thin
+    axis (z of the local frame, 0.1 ``size``) along the normal, in-plane sigmas ``size`` times a
+    uniform factor in ``jitter``; colour ``rgb`` ([3] or [n,3] in [0,1]) plus Gaussian noise of
+    ``colour_noise``, clipped; opacities uniform in ``opacity``; SH of ``sh_degree`` (0 or 1: a
+    mild random view dependence)."""
     n = len(points)
     z = np.array([0.0, 0.0, 1.0])
     axis = np.cross(np.broadcast_to(z, normals.shape), normals)
     s = np.linalg.norm(axis, axis=1, keepdims=True)
-    c = normals @ z
-    half = np.arctan2(s[:, 0], c) / 2
+    half = np.arctan2(s[:, 0], normals @ z) / 2
     axis = np.where(s > 1e-9, axis / np.maximum(s, 1e-12), np.array([1.0, 0.0, 0.0]))
     quats = np.concatenate([np.cos(half)[:, None], np.sin(half)[:, None] * axis], 1)
-    scales = np.stack([size * rng.uniform(0.7, 1.3, n), size * rng.uniform(0.7, 1.3, n),
+    scales = np.stack([size * rng.uniform(*jitter, n), size * rng.uniform(*jitter, n),
                        np.full(n, size * 0.1)], 1)
-    colour = np.clip(rgb + rng.normal(0, 0.04, rgb.shape), 0, 1)
-    sh = np.zeros((n, 4, 3))
+    colour = np.clip(np.broadcast_to(rgb, (n, 3)) + rng.normal(0, colour_noise, (n, 3)), 0, 1)
+    sh = np.zeros((n, (sh_degree + 1) ** 2, 3))
     sh[:, 0] = (colour - 0.5) / SH_C0
-    sh[:, 1:] = rng.normal(0, 0.05, (n, 3, 3))  # mild view dependence (degree 1)
+    if sh_degree:
+        sh[:, 1:] = rng.normal(0, 0.05, (n, 3, 3))
     return Gaussians(points.astype(np.float32), quats.astype(np.float32), scales.astype(np.float32),
-                     rng.uniform(0.8, 0.99, n).astype(np.float32), sh.astype(np.float32))
+                     rng.uniform(*opacity, n).astype(np.float32), sh.astype(np.float32))
 
 
-def _concat(parts: list[Gaussians]) -> Gaussians:
+def concat(parts: list[Gaussians]) -> Gaussians:
+    """One Gaussians of all ``parts`` (same SH degree), in order."""
     return Gaussians(*(np.concatenate([getattr(p, f) for p in parts]) for f in
                        ("means", "quats", "scales", "opacities", "sh")))
 
@@ -43,18 +50,18 @@ def procedural_scene(n: int = 20000, seed: int = 0) -> Gaussians:
     xy = rng.uniform(-1, 1, (k, 2))
     checker = ((np.floor(xy[:, 0] * 4) + np.floor(xy[:, 1] * 4)) % 2)[:, None]
     floor_rgb = 0.25 + 0.5 * checker * np.ones((1, 3))
-    parts.append(_surface_gaussians(np.c_[xy, np.zeros(k)], np.tile([0.0, 0.0, 1.0], (k, 1)),
+    parts.append(surface_gaussians(np.c_[xy, np.zeros(k)], np.tile([0.0, 0.0, 1.0], (k, 1)),
                                     floor_rgb, 0.02, rng))
     # sphere
     d = rng.normal(size=(k, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
-    parts.append(_surface_gaussians(np.array([-0.4, -0.3, 0.35]) + 0.3 * d, d,
+    parts.append(surface_gaussians(np.array([-0.4, -0.3, 0.35]) + 0.3 * d, d,
                                     np.tile([0.85, 0.15, 0.1], (k, 1)), 0.02, rng))
     # torus (major radius 0.3, minor 0.1), standing on the floor
     u, v = rng.uniform(0, 2 * np.pi, (2, k))
     ring = np.c_[np.cos(u), np.sin(u), np.zeros(k)]
     normal = np.cos(v)[:, None] * ring + np.sin(v)[:, None] * np.array([0.0, 0.0, 1.0])
-    parts.append(_surface_gaussians(np.array([0.4, 0.3, 0.12]) + 0.3 * ring + 0.1 * normal, normal,
+    parts.append(surface_gaussians(np.array([0.4, 0.3, 0.12]) + 0.3 * ring + 0.1 * normal, normal,
                                     np.tile([0.1, 0.3, 0.9], (k, 1)), 0.015, rng))
     # box: points on the six faces of a 0.4 x 0.4 x 0.5 box
     m = n - 3 * k
@@ -65,6 +72,6 @@ def procedural_scene(n: int = 20000, seed: int = 0) -> Gaussians:
     local[np.arange(m), axis] = sign * half[axis]
     normals = np.zeros((m, 3))
     normals[np.arange(m), axis] = sign
-    parts.append(_surface_gaussians(np.array([0.45, -0.45, 0.25]) + local, normals,
+    parts.append(surface_gaussians(np.array([0.45, -0.45, 0.25]) + local, normals,
                                     np.tile([0.95, 0.8, 0.2], (m, 1)), 0.02, rng))
-    return _concat(parts)
+    return concat(parts)

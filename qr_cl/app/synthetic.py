@@ -33,8 +33,9 @@ from ..render import rasterize
 from ..runtime import SH_C0
 from ..scene import Camera, Gaussians, look_at, save_ply
 from .metrics import NYU40_NAMES
+from .procedural import concat, surface_gaussians
 
-GENERATOR_VERSION = 2
+GENERATOR_VERSION = 3
 
 #: class id -> base RGB colour in [0,1].
 CLASS_COLOURS: dict[int, tuple[float, float, float]] = {
@@ -75,8 +76,15 @@ class SyntheticConfig:
         return hashlib.sha1(text.encode()).hexdigest()[:12]
 
 
+def _open3d():
+    """open3d, imported on first use (function-local: it takes ~0.9 s to import and only the room
+    meshes need it)."""
+    import open3d
+    return open3d
+
+
 def _box(size, centre, yaw: float = 0.0):
-    import open3d as o3d  # function-local: open3d takes ~0.9 s to import and only the room generator needs it
+    o3d = _open3d()
     m = o3d.geometry.TriangleMesh.create_box(*size)
     m.translate(-np.asarray(size) / 2)
     m.rotate(_rot_z(yaw), center=(0, 0, 0))
@@ -85,14 +93,14 @@ def _box(size, centre, yaw: float = 0.0):
 
 
 def _cylinder(radius: float, height: float, centre):
-    import open3d as o3d  # function-local: open3d takes ~0.9 s to import and only the room generator needs it
+    o3d = _open3d()
     m = o3d.geometry.TriangleMesh.create_cylinder(radius, height, resolution=24)
     m.translate(centre)
     return m
 
 
 def _sphere(radius: float, centre):
-    import open3d as o3d  # function-local: open3d takes ~0.9 s to import and only the room generator needs it
+    o3d = _open3d()
     m = o3d.geometry.TriangleMesh.create_sphere(radius, resolution=12)
     m.translate(centre)
     return m
@@ -161,21 +169,6 @@ def _area_sample(meshes: list, n: int, rng: np.random.Generator) -> tuple[np.nda
 
 def _surface_area(meshes: list) -> float:
     return float(sum(m.get_surface_area() for m in meshes))
-
-
-def _flat_gaussians(points, normals, rgb, size: float, rng: np.random.Generator) -> dict:
-    """Flat Gaussians on a surface: thin axis along the normal, in-plane sigma ~ ``size``."""
-    n = len(points)
-    z = np.array([0.0, 0.0, 1.0])
-    axis = np.cross(np.broadcast_to(z, normals.shape), normals)
-    s = np.linalg.norm(axis, axis=1)
-    half = np.arctan2(s, normals @ z) / 2
-    axis = np.where(s[:, None] > 1e-9, axis / np.maximum(s, 1e-12)[:, None], np.array([1.0, 0, 0]))
-    quats = np.concatenate([np.cos(half)[:, None], np.sin(half)[:, None] * axis], 1)
-    scales = np.stack([size * rng.uniform(0.8, 1.2, n), size * rng.uniform(0.8, 1.2, n), np.full(n, size * 0.1)], 1)
-    colour = np.clip(np.asarray(rgb) + rng.normal(0, 0.05, (n, 3)), 0, 1)
-    return {"means": points, "quats": quats, "scales": scales, "opacities": rng.uniform(0.85, 0.99, n),
-            "rgb": colour}
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -293,21 +286,22 @@ def write_scene(out: Path, cfg: SyntheticConfig) -> None:
     parts, inst_ids, points, point_labels = [], [], [], []
     for i, ((cls, meshes), n) in enumerate(zip(instances, counts)):
         pts, nrm = _area_sample(meshes, int(n), rng)
-        parts.append(_flat_gaussians(pts, nrm, CLASS_COLOURS[cls], size, rng))
+        parts.append(surface_gaussians(pts, nrm, np.asarray(CLASS_COLOURS[cls]), size, rng, jitter=(0.8, 1.2),
+                                       colour_noise=0.05, opacity=(0.85, 0.99), sh_degree=0))
         inst_ids.append(np.full(int(n), i))
         cloud, _ = _area_sample(meshes, int(n) * cfg.points_per_gaussian, rng)
         points.append(cloud)
         point_labels.append(np.full(len(cloud), cls))
     w, d, h = cfg.room_size
     n_float = max(cfg.n_gaussians - int(counts.sum()), 0)
-    parts.append({"means": rng.uniform((0.2, 0.2, 0.2), (w - 0.2, d - 0.2, h - 0.2), (n_float, 3)),
-                  "quats": _unit(rng.standard_normal((n_float, 4))),
-                  "scales": np.full((n_float, 3), size), "opacities": rng.uniform(0.01, 0.2, n_float),
-                  "rgb": rng.random((n_float, 3))})
+    means = rng.uniform((0.2, 0.2, 0.2), (w - 0.2, d - 0.2, h - 0.2), (n_float, 3))
+    quats = _unit(rng.standard_normal((n_float, 4)))
+    opacities = rng.uniform(0.01, 0.2, n_float)
+    sh = ((rng.random((n_float, 3)) - 0.5) / SH_C0)[:, None, :]
+    parts.append(Gaussians(means.astype(np.float32), quats.astype(np.float32), np.full((n_float, 3), size, np.float32),
+                           opacities.astype(np.float32), sh.astype(np.float32)))
     inst_ids.append(np.full(n_float, -1))
-    cat = {k: np.concatenate([p[k] for p in parts]).astype(np.float32) for k in parts[0]}
-    sh = ((cat["rgb"] - 0.5) / SH_C0)[:, None, :]
-    gaussians = Gaussians(cat["means"], cat["quats"], cat["scales"], cat["opacities"], sh.astype(np.float32))
+    gaussians = concat(parts)
     instance = np.concatenate(inst_ids).astype(np.int64)
     classes = np.array([c for c, _ in instances])
     labels = np.where(instance >= 0, classes[np.maximum(instance, 0)], -1).astype(np.int32)

@@ -9,13 +9,14 @@ import numpy as np
 import pyopencl.array as cla
 import torch
 
-from ..runtime import channel_layout, check_channels, padded_rows
+from ..runtime import channel_layout, check_buffer, check_channels, padded_rows
 from ..stages.blend import blend_backward, blend_forward
 from ..stages.select import Selection
 
 
 def _rows(rt, tensor: torch.Tensor, cstride: int) -> cla.Array:
     """A device copy of a [R, C] tensor as float32 rows of cstride floats."""
+    check_buffer(rt, 4 * tensor.shape[0] * cstride, f"{tensor.shape[0]} rows x {cstride} channels")
     return cla.to_device(rt.queue, padded_rows(tensor.detach().cpu().numpy(), cstride))
 
 

@@ -9,7 +9,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..runtime import Runtime, channel_layout, check_channels, padded_rows, runtime, to_device
+from ..runtime import (BufferLimitError, Runtime, channel_layout, check_buffer, check_channels, padded_rows,
+                       runtime, to_device)
 from ..stages.binning import RasterPlan, bin_and_sort
 from ..stages.project import project
 from ..stages.select import check_pixels, check_sampler, select
@@ -40,6 +41,39 @@ def rasterize_plan(means: np.ndarray, quats: np.ndarray, scales: np.ndarray, opa
     splats, radii, rects, touched = project(rt, *dev, viewmat, np.asarray(K), width, height, near, far)
     ranges, ids, n_keys = bin_and_sort(rt, splats, rects, touched, width, height)
     return RasterPlan(rt, int(width), int(height), splats, radii, ranges, ids, n_keys)
+
+
+def channel_groups(rt: Runtime, n: int, channels: int) -> list[slice]:
+    """Feature columns rendered together: all ``channels`` when their [n, cstride] device rows fit
+    in one buffer of the device, else groups of a multiple of 16 channels that do (channels are
+    blended independently, so the image is the same). BufferLimitError if 16 do not fit."""
+    if 4 * n * channel_layout(channels)[2] <= rt.max_buffer_bytes:
+        return [slice(0, channels)]
+    per = rt.max_buffer_bytes // (4 * n) // 16 * 16
+    if per < 16:
+        check_buffer(rt, 4 * n * 16, f"features of {n} Gaussians x 16 channels (the smallest group)")
+    return [slice(c, min(c + per, channels)) for c in range(0, channels, per)]
+
+
+def image_pixels(width: int, height: int) -> np.ndarray:
+    """Every pixel (x, y) of a width x height image, row-major: [H*W, 2] int32."""
+    ys, xs = np.mgrid[0:height, 0:width]
+    return np.stack([xs.ravel(), ys.ravel()], 1).astype(np.int32)
+
+
+def ray_sets(rt: Runtime, width: int, height: int, pixels: np.ndarray | None, k: int,
+             cstride: int) -> list[np.ndarray | None]:
+    """The rays of a render in sets whose image rows ([P, cstride] floats) and dense selection
+    rows ([P, K]) fit in one device buffer: ``[pixels]`` when everything fits (None = the whole
+    image), else consecutive runs of the pixel coordinates [P_i, 2] (x, y), row-major for the
+    whole image, so concatenating the sets' rows gives the image."""
+    n_rays = width * height if pixels is None else len(pixels)
+    per_ray = 4 * max(cstride, k)
+    if n_rays * per_ray <= rt.max_buffer_bytes:
+        return [pixels]
+    pixels = image_pixels(width, height) if pixels is None else pixels
+    step = max(1, rt.max_buffer_bytes // per_ray)
+    return [pixels[i:i + step] for i in range(0, n_rays, step)]
 
 
 class _Scene:
@@ -131,7 +165,12 @@ def rasterize(means, quats, scales, opacities, features, viewmat, K, width: int,
         transmittance where the ray's walk stopped (for quantile the walk stops once T < 1/(K+1)),
         and a meta dict with means2d [N,2] (px), conics [N,3], depths [N] (camera z), radii [N]
         int32 (0 = culled), opacities [N], tile_ranges [tiles,2], flatten_ids, n_keys and (for
-        N >= 1) the ``selection`` used (:class:`qr_cl.stages.select.Selection`).
+        N >= 1) the ``selection`` used (:class:`qr_cl.stages.select.Selection`; a list of them,
+        one per set of rays, when the render was split to fit the device's buffers).
+
+        Renders larger than the device's largest buffer are split into sets of rays and groups
+        of channels (the same image); features whose 16 channels alone do not fit, or a render
+        that still does not fit, raise :class:`qr_cl.runtime.BufferLimitError` naming the sizes.
 
         The render is differentiable w.r.t. ``features`` (a [N,C] tensor with requires_grad) and
         ``background`` through :class:`qr_cl.render.autograd.BlendFunction`. No gradient is
@@ -145,20 +184,49 @@ def rasterize(means, quats, scales, opacities, features, viewmat, K, width: int,
     if len(scene.means) == 0:
         return scene.empty((height, width) if pixels is None else (len(pixels),))
 
-    def make_selection():
-        return select(scene.plan(width, height, near, far), sampler, k, pixels)
-    if cache is None:
-        sel = make_selection()
-    else:
-        sel = cache.get(selection_key(scene.means, scene.quats, scene.scales, scene.opacities,
-                                      scene.viewmat, scene.K, width, height, near, far, sampler, k,
-                                      pixels), make_selection)
-    render = blend(sel, scene.features, scene.background)
-    alpha = torch.from_numpy(1 - sel.t_walk.get()[:sel.n_rays, None])
-    meta = {**sel.plan.meta(), "selection": sel}
+    rt = runtime()
+    plans: list[RasterPlan] = []
+
+    def selection(rays):
+        def make():
+            if not plans:
+                plans.append(scene.plan(width, height, near, far))
+            return select(plans[0], sampler, k, rays)
+        if cache is None:
+            return make()
+        return cache.get(selection_key(scene.means, scene.quats, scene.scales, scene.opacities, scene.viewmat,
+                                       scene.K, width, height, near, far, sampler, k, rays), make)
+
+    groups = channel_groups(rt, len(scene.means), scene.channels)
+    parts = []
+    for rays in ray_sets(rt, width, height, pixels, k, channel_layout(groups[0].stop - groups[0].start)[2]):
+        parts += _render_rays(selection, rays, width, height, scene, groups)
+    sels = [sel for sel, _, _ in parts]
+    render = torch.cat([r for _, r, _ in parts]) if len(parts) > 1 else parts[0][1]
+    alpha = torch.from_numpy(np.concatenate([a for _, _, a in parts]))
+    meta = {**sels[0].plan.meta(), "selection": sels[0] if len(sels) == 1 else sels}
     if pixels is None:
         render, alpha = render.reshape(height, width, scene.channels), alpha.reshape(height, width, 1)
     return render, alpha, meta
+
+
+def _render_rays(selection, rays: np.ndarray | None, width: int, height: int, scene: _Scene,
+                 groups: list[slice]) -> list[tuple]:
+    """(Selection, render [P,C], alpha [P,1]) of the rays ``rays`` (None = whole image): one
+    entry, or several when a selection does not fit in a device buffer and the rays are halved."""
+    try:
+        sel = selection(rays)
+    except BufferLimitError:
+        if rays is not None and len(rays) < 2:
+            raise
+        rays = image_pixels(width, height) if rays is None else rays
+        half = len(rays) // 2
+        return (_render_rays(selection, rays[:half], width, height, scene, groups)
+                + _render_rays(selection, rays[half:], width, height, scene, groups))
+    bg = scene.background
+    cols = [blend(sel, scene.features[:, g], None if bg is None else bg[g]) for g in groups]
+    render = cols[0] if len(cols) == 1 else torch.cat(cols, 1)
+    return [(sel, render, 1 - sel.t_walk.get()[:sel.n_rays, None])]
 
 
 def render_volume_fused(means, quats, scales, opacities, features, viewmat, K, width: int, height: int,

@@ -210,6 +210,11 @@ class Runtime:
         self.queue = cl.CommandQueue(self.context)
 
     @property
+    def max_buffer_bytes(self) -> int:
+        """The largest single buffer this device allows (CL_DEVICE_MAX_MEM_ALLOC_SIZE), bytes."""
+        return int(self.device.max_mem_alloc_size)
+
+    @property
     def is_cpu(self) -> bool:
         """True for a CPU device (the host is the device: host-side sorting pays off)."""
         return device_kind(self.device) == "cpu"

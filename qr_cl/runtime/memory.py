@@ -18,6 +18,19 @@ from .constants import MAX_CHANNELS
 from .device import Runtime
 
 
+class BufferLimitError(ValueError):
+    """A buffer would exceed the device's largest allocation; the message names both sizes."""
+
+
+def check_buffer(rt: Runtime, nbytes: int, what: str) -> None:
+    """BufferLimitError unless ``nbytes`` fit in one buffer of ``rt``'s device."""
+    limit = rt.max_buffer_bytes
+    if nbytes > limit:
+        raise BufferLimitError(f"{what} needs {nbytes / 2**20:.1f} MiB in one device buffer; "
+                               f"{rt.device.name.strip()} allows {limit / 2**20:.1f} MiB "
+                               "(CL_DEVICE_MAX_MEM_ALLOC_SIZE)")
+
+
 def check_channels(channels: int) -> None:
     """ValueError unless 1 <= channels <= MAX_CHANNELS."""
     if not 1 <= channels <= MAX_CHANNELS:

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pyopencl.array as cla
 
-from ..runtime import channel_layout, padded_vector, to_device
+from ..runtime import channel_layout, check_buffer, padded_vector, to_device
 from .select import Selection
 
 
@@ -30,6 +30,7 @@ def blend_forward(sel: Selection, features: cla.Array, channels: int,
     rt = sel.plan.runtime
     vw, nv, cstride = channel_layout(channels)
     _check_rows(features, sel.n_gaussians, cstride, "features")
+    check_buffer(rt, 4 * sel.n_rays * cstride, f"the image of {sel.n_rays} rays x {cstride} channels")
     image = cla.empty(rt.queue, (sel.n_rays, cstride), np.float32) if out is None else out
     _check_rows(image, sel.n_rays, cstride, "out")
     if sel.n_rays == 0:
@@ -53,6 +54,7 @@ def blend_backward(sel: Selection, dimage: cla.Array, channels: int) -> cla.Arra
     rt = sel.plan.runtime
     vw, nv, cstride = channel_layout(channels)
     _check_rows(dimage, sel.n_rays, cstride, "dimage")
+    check_buffer(rt, 4 * sel.n_gaussians * cstride, f"dF of {sel.n_gaussians} Gaussians x {cstride} channels")
     cursor, t_ray, t_w, chunks = sel.transpose()
     dfeatures = cla.empty(rt.queue, (sel.n_gaussians, cstride), np.float32)
     rt.launch("blend_backward", (sel.n_gaussians, cstride // (vw * nv)), defines={"VW": vw, "NV": nv},

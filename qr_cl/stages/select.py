@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pyopencl.array as cla
 
-from ..runtime import SAMPLERS, TILE, exclusive_scan, last_value
+from ..runtime import SAMPLERS, TILE, check_buffer, exclusive_scan, last_value
 from .binning import RasterPlan
 
 MAX_CHUNKS = 64               # rays are split into at most this many chunks for the transpose
@@ -180,10 +180,12 @@ def select(plan: RasterPlan, sampler: str = "quantile", k: int = 40, pixels=None
         rt.launch("volume_count", size, **rays, count=count, t_walk=t_walk)
         exclusive_scan(rt, count, offsets)
         total = last_value(offsets) + last_value(count[:n_rays])
+        check_buffer(rt, 4 * total, f"the volume selection of {n_rays} rays ({total} entries)")
         ids, weights = cla.empty(q, max(total, 1), np.int32), cla.empty(q, max(total, 1), np.float32)
         rt.launch("volume_fill", size, **rays, offsets=offsets, out_ids=ids, out_w=weights,
                   t_sel=t_sel, t_rem=t_rem)
     else:
+        check_buffer(rt, 4 * n_rays * k, f"the {sampler} selection of {n_rays} rays x K={k}")
         ids, weights = cla.empty(q, n_rays * k, np.int32), cla.empty(q, n_rays * k, np.float32)
         offsets = cla.arange(q, 0, n_rays * k, k, dtype=np.int32)
         rt.launch(f"select_{sampler}", size, **rays, K=k, out_ids=ids, out_w=weights, count=count,

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pyopencl.array as cla
 
-from ..runtime import TILE, channel_layout, host_output, padded_vector, to_device
+from ..runtime import TILE, channel_layout, check_buffer, host_output, padded_vector, to_device
 from .binning import RasterPlan
 
 
@@ -26,6 +26,8 @@ def render_fused(plan: RasterPlan, features: cla.Array, channels: int,
     if features.shape[-1] != cstride:
         raise ValueError(f"features have row length {features.shape[-1]}, expected {cstride}")
     h, w = plan.height, plan.width
+    check_buffer(rt, 4 * h * w * cstride, f"the fused V-Render image of {w}x{h} px x {cstride} channels "
+                 "(rasterize(..., sampler='volume') renders it in chunks)")
     image = np.empty((h, w, cstride), np.float32) if out is None else out
     if image.shape != (h, w, cstride) or image.dtype != np.float32 or not image.flags.c_contiguous:
         raise ValueError(f"out must be a C-contiguous float32 array of shape {(h, w, cstride)}")

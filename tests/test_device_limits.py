@@ -1,0 +1,57 @@
+"""Renders larger than the device's largest buffer: split into sets of rays and groups of channels
+(the same image), or refused with a message naming the sizes and the limit."""
+import numpy as np
+import pytest
+import torch
+
+import qr_cl
+from qr_cl.runtime import BufferLimitError, Runtime
+
+
+def limit_buffers(monkeypatch, nbytes: int) -> None:
+    monkeypatch.setattr(Runtime, "max_buffer_bytes", property(lambda self: nbytes))
+
+
+def render(scene, channels: int, sampler: str, k: int = 6, pixels=None):
+    m, q, s, o, v, K, w, h = scene
+    feats = torch.from_numpy(np.random.default_rng(channels).normal(size=(len(m), channels)).astype(np.float32))
+    feats.requires_grad_(True)
+    img, alpha, meta = qr_cl.rasterize(m, q, s, o, feats, v, K, w, h, sampler=sampler, k=k, pixels=pixels,
+                                       background=torch.linspace(-1, 1, channels))
+    (img * torch.linspace(0, 1, img.shape[-1])).sum().backward()
+    return img.detach(), alpha, feats.grad, meta["selection"]
+
+
+@pytest.mark.parametrize("sampler", ["volume", "quantile", "topk"])
+def test_split_render_equals_the_whole(random_scene, monkeypatch, sampler):
+    n, w, h = len(random_scene[0]), random_scene[6], random_scene[7]
+    whole = render(random_scene, 40, sampler)
+    # features fit only 32 channels at a time, an image only ~1/6 of the rays at 32 channels
+    limit_buffers(monkeypatch, 4 * max(n * 32, w * h * 32 // 6))
+    split = render(random_scene, 40, sampler)
+    assert isinstance(split[3], list) and len(split[3]) >= 6      # it really was split
+    assert torch.equal(split[0], whole[0]) and torch.equal(split[1], whole[1])
+    torch.testing.assert_close(split[2], whole[2], rtol=1e-5, atol=1e-6)   # per-set sums added
+
+
+def test_split_pixel_subset_and_volume_entries(random_scene, monkeypatch):
+    """One channel: the image rows fit but the volume selection's entries do not; the rays are halved."""
+    w, h = random_scene[6], random_scene[7]
+    pixels = np.stack(np.meshgrid(np.arange(0, w, 3), np.arange(0, h, 2)), -1).reshape(-1, 2)
+    whole, whole_sub = render(random_scene, 1, "volume"), render(random_scene, 1, "volume", pixels=pixels)
+    entries = int(whole[3].count.get()[:w * h].sum())
+    limit_buffers(monkeypatch, max(4 * w * h, 4 * entries // 3))
+    split, split_sub = render(random_scene, 1, "volume"), render(random_scene, 1, "volume", pixels=pixels)
+    assert isinstance(split[3], list) and len(split[3]) >= 3
+    assert torch.equal(split[0], whole[0]) and torch.equal(split_sub[0], whole_sub[0])
+    assert torch.equal(split[1], whole[1]) and torch.equal(split_sub[1], whole_sub[1])
+
+
+def test_what_cannot_be_split_is_refused_with_sizes(random_scene, monkeypatch):
+    m, q, s, o, v, K, w, h = random_scene
+    limit_buffers(monkeypatch, 4 * len(m) * 8)       # not even 16 channels of the features fit
+    with pytest.raises(BufferLimitError, match=r"16 channels .*MiB in one device buffer.*allows .*MAX_MEM_ALLOC"):
+        qr_cl.rasterize(m, q, s, o, np.ones((len(m), 20), np.float32), v, K, w, h)
+    limit_buffers(monkeypatch, 4 * w * h * 4)        # a 16-channel fused image does not fit
+    with pytest.raises(BufferLimitError, match=r"fused V-Render image .*rasterize"):
+        qr_cl.render_volume_fused(m, q, s, o, np.ones((len(m), 16), np.float32), v, K, w, h)
