@@ -18,8 +18,8 @@ __kernel void blend(__global const int *offsets, __global const int *count,
                     const int tiles_x, __global const float *background,   /* [cstride] */
                     __global const float *t_rem, const int use_bg,
                     __global float *image) {               /* [P, cstride] */
-    int x, y, p = get_global_id(0);
-    if (full && !ray_pixel(p, 1, 0, width, height, tiles_x, &x, &y, &p)) return;
+    int p;
+    if (!ray_row(get_global_id(0), full, width, height, tiles_x, &p)) return;
     const int c0 = get_global_id(1) * NV * VW;
     vec_t acc[NV];
     for (int v = 0; v < NV; v++) acc[v] = (vec_t)(0.f);

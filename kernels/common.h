@@ -7,7 +7,7 @@
 #define QR_CL_COMMON_H
 
 /* Rotation matrix (row-major, 9 floats) of a unit quaternion q = (w, x, y, z). */
-inline void quat_to_rotmat(float4 q, float *r) {
+static inline void quat_to_rotmat(float4 q, float *r) {
     float w = q.x, x = q.y, y = q.z, z = q.w;
     r[0] = 1.f - 2.f * (y * y + z * z); r[1] = 2.f * (x * y - w * z); r[2] = 2.f * (x * z + w * y);
     r[3] = 2.f * (x * y + w * z); r[4] = 1.f - 2.f * (x * x + z * z); r[5] = 2.f * (y * z - w * x);
@@ -15,7 +15,7 @@ inline void quat_to_rotmat(float4 q, float *r) {
 }
 
 /* c = a * b for row-major 3x3 matrices. */
-inline void mat3_mul(const float *a, const float *b, float *c) {
+static inline void mat3_mul(const float *a, const float *b, float *c) {
     for (int i = 0; i < 3; i++)
         for (int j = 0; j < 3; j++)
             c[3 * i + j] = a[3 * i] * b[j] + a[3 * i + 1] * b[3 + j] + a[3 * i + 2] * b[6 + j];
@@ -23,35 +23,29 @@ inline void mat3_mul(const float *a, const float *b, float *c) {
 
 /* Gaussian density exponent at offset d = mean2d - pixel: 0.5 (a dx^2 + c dy^2) + b dx dy,
    with conic (a, b, c) the inverse 2D covariance. */
-inline float splat_sigma(float a, float b, float c, float dx, float dy) {
+static inline float splat_sigma(float a, float b, float c, float dx, float dy) {
     return 0.5f * (a * dx * dx + c * dy * dy) + b * dx * dy;
 }
 
-/* ---- helpers of the selection and blend kernels (select.cl, blend.cl) ---- */
+#define CAT2(a, b) a##b
+#define CAT(a, b) CAT2(a, b)
 
-/* Ray gid -> pixel (x, y) and output row p. full != 0: the whole image, rays numbered tile-major
-   (neighbouring work-items share a tile list), p = y * width + x; returns 0 for padding rays
-   outside the image. full == 0: a pixel subset, (x, y) = pixels[gid], p = gid. */
-inline int ray_pixel(int gid, int full, __global const int2 *pixels, int width, int height,
-                     int tiles_x, int *x, int *y, int *p) {
-    if (full) {
-        const int tile = gid / (TILE * TILE), in_tile = gid % (TILE * TILE);
-        *x = (tile % tiles_x) * TILE + in_tile % TILE;
-        *y = (tile / tiles_x) * TILE + in_tile / TILE;
-        *p = *y * width + *x;
-        return *x < width && *y < height;
-    }
-    const int2 xy = pixels[gid];
-    *x = xy.x; *y = xy.y; *p = gid;
-    return 1;
+/* ---- rays: blend.cl numbers them one per work-item ---- */
+
+/* Ray gid -> output row p. full != 0: the whole image, rays numbered tile-major (neighbouring
+   work-items share a tile list), p = y * width + x; returns 0 for padding rays outside the image.
+   full == 0: a pixel subset, p = gid. */
+static inline int ray_row(int gid, int full, int width, int height, int tiles_x, int *p) {
+    if (!full) { *p = gid; return 1; }
+    const int tile = gid / (TILE * TILE), in_tile = gid % (TILE * TILE);
+    const int x = (tile % tiles_x) * TILE + in_tile % TILE, y = (tile / tiles_x) * TILE + in_tile / TILE;
+    *p = y * width + x;
+    return x < width && y < height;
 }
 
-/* The tile of pixel (x, y). */
-inline int pixel_tile(int x, int y, int tiles_x) { return (y / TILE) * tiles_x + x / TILE; }
-
 /* alpha'_i of a splat at pixel centre (px, py): min(0.99, opacity exp(-sigma)), or 0 when the
-   Gaussian is skipped (sigma < 0 or alpha < 1/255). Same expression as vrender.cl. */
-inline float splat_alpha(float8 s, float px, float py) {
+   Gaussian is skipped (sigma < 0 or alpha < 1/255). */
+static inline float splat_alpha(float8 s, float px, float py) {
     const float sig = splat_sigma(s.s2, s.s3, s.s4, s.s0 - px, s.s1 - py);
     if (sig < 0.f) return 0.f;
     const float a = min(ALPHA_MAX, s.s5 * exp(-sig));
@@ -59,7 +53,88 @@ inline float splat_alpha(float8 s, float px, float py) {
 }
 
 /* The (k+1)-th of the K equal transmittance boundaries of Q-Render: 1 - (k+1)/(K+1). */
-inline float quantile_boundary(int k, int K) { return 1.f - (float)(k + 1) / (float)(K + 1); }
+static inline float quantile_boundary(int k, int K) { return 1.f - (float)(k + 1) / (float)(K + 1); }
+
+/* ---- the block walk of select.cl and vrender.cl ----
+
+   A work-item walks one tile's depth-sorted Gaussian list for a block of up to TILE rays at once:
+   lane l of the TILE-wide vectors (lanef, lanei) is ray l of the block, and each Gaussian's alpha
+   is evaluated for all lanes with explicit vector types (PoCL does not vectorize loops whose trip
+   count differs between work-items; explicit vectors become SIMD code). Per lane the 3DGS rules
+   are those of one ray walking alone, so the results equal the per-ray walk. Whole image
+   (full != 0): block b is row b % TILE of tile b / TILE. Pixel subset (full == 0): the host
+   groups the rays by tile; block b holds the rays order[blocks[b].x ..+ blocks[b].y) of tile
+   blocks[b].z. */
+typedef CAT(float, TILE) lanef;
+typedef CAT(int, TILE) lanei;
+#define LANE(v, l) (((__private float *)&(v))[l])      /* lane l of a lanef */
+#define LANE_I(v, l) (((__private int *)&(v))[l])      /* lane l of a lanei */
+
+#define BLOCK_ARGS __global const int2 *ranges, __global const int *ids, \
+    __global const float8 *splats, __global const int2 *pixels, __global const int *order, \
+    __global const int4 *blocks, const int full, const int width, const int height, const int tiles_x
+
+/* The rays of block b: returns the tile's range [start, end) in ids; px, py get the lanes'
+   pixel centres, row their output rows (-1 for lanes without a ray). */
+static inline int2 block_rays(int b, int full, __global const int2 *ranges, __global const int2 *pixels,
+                              __global const int *order, __global const int4 *blocks, int width,
+                              int height, int tiles_x, lanef *px, lanef *py, lanei *row) {
+    int tile;
+    if (full) {
+        tile = b / TILE;
+        const int x0 = (tile % tiles_x) * TILE, y = (tile / tiles_x) * TILE + b % TILE;
+        for (int l = 0; l < TILE; l++) {
+            LANE(*px, l) = x0 + l + 0.5f;
+            LANE(*py, l) = y + 0.5f;
+            LANE_I(*row, l) = x0 + l < width && y < height ? y * width + x0 + l : -1;
+        }
+    } else {
+        const int4 blk = blocks[b];
+        tile = blk.z;
+        for (int l = 0; l < TILE; l++) {
+            const int ray = l < blk.y ? order[blk.x + l] : -1;
+            const int2 xy = ray >= 0 ? pixels[ray] : (int2)(0);
+            LANE(*px, l) = xy.x + 0.5f;
+            LANE(*py, l) = xy.y + 0.5f;
+            LANE_I(*row, l) = ray;
+        }
+    }
+    return ranges[tile];
+}
+
+/* splat_alpha of splat s at the lanes' pixel centres, as vectors (the same expression). */
+static inline lanef block_alpha(float8 s, lanef px, lanef py) {
+    const lanef dx = s.s0 - px, dy = s.s1 - py;
+    const lanef sig = 0.5f * (s.s2 * dx * dx + s.s4 * dy * dy) + s.s3 * dx * dy;
+    const lanef a = fmin((lanef)(ALPHA_MAX), s.s5 * exp(-sig));
+    return select(a, (lanef)(0.f), (sig < 0.f) | (a < ALPHA_MIN));
+}
+
+/* The V-Render walk of a block: for each Gaussian g (splat s) of the list, in depth order, that
+   some lane blends, runs the statements ... with lanei use (-1 in the lanes that blend it) and lanef w
+   (w_i = T_i alpha'_i there, 0 elsewhere), then advances T. A lane stops before the Gaussian that
+   would bring its T to <= T_MIN; lanes with row < 0 never start. Declares T (lanef), the lanes'
+   transmittance after the walk, in the enclosing scope. */
+#define VOLUME_WALK(range, px, py, row, ...) \
+    lanef T = (lanef)(1.f); \
+    { \
+        lanei done_ = row < 0; \
+        for (int i_ = range.x; i_ < range.y && !all(done_); i_++) { \
+            const int g = ids[i_]; \
+            const float8 s = splats[g]; \
+            const lanef a_ = block_alpha(s, px, py); \
+            lanei use = (a_ > 0.f) & ~done_; \
+            if (!any(use)) continue; \
+            const lanef next_T = T * (1.f - a_); \
+            const lanei stop_ = use & (next_T <= T_MIN); \
+            done_ |= stop_; \
+            use &= ~stop_; \
+            if (!any(use)) continue; \
+            const lanef w = select((lanef)(0.f), a_ * T, use); \
+            __VA_ARGS__; \
+            T = select(T, next_T, use); \
+        } \
+    }
 
 /* Feature rows in vectors of VW floats (kernels built with -DVW=1, 2, 4, 8 or 16): vec_t,
    VLOAD(i, p) and VSTORE(v, i, p) load/store the i-th vector of row p. */
@@ -69,8 +144,6 @@ typedef float vec_t;
 #define VLOAD(i, p) ((p)[i])
 #define VSTORE(v, i, p) ((p)[i] = (v))
 #else
-#define CAT2(a, b) a##b
-#define CAT(a, b) CAT2(a, b)
 typedef CAT(float, VW) vec_t;
 #define VLOAD(i, p) CAT(vload, VW)(i, p)
 #define VSTORE(v, i, p) CAT(vstore, VW)(v, i, p)

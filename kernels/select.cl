@@ -1,70 +1,71 @@
 /* Selection kernels: which Gaussians a ray blends and with what weight (geometry only).
 
-   One work-item per ray. A ray walks the depth-sorted Gaussian list of its pixel's tile and
-   writes (Gaussian id, weight) entries. Per ray it also writes count (entries), t_walk (the
-   transmittance T where its walk stopped), t_sel (the transmittance among the selected
-   Gaussians before normalization; T for volume) and t_rem (the weight of the background).
-   quantile/topk write dense rows of K entries at p * K (-1 / 0 padded, the 1 / (1 - t_sel)
-   normalization folded into the weights); volume writes at offsets[p] (CSR, after a counting
-   pass and a scan). */
+   One work-item per block of up to TILE rays sharing a tile list (the block walk of common.h).
+   A ray writes (Gaussian id, weight) entries and, per ray, count (entries), t_walk (the
+   transmittance T where its walk stopped), t_sel (the transmittance among the selected Gaussians
+   before normalization; T for volume) and t_rem (the weight of the background). quantile/topk
+   write their count[p] entries into row p of K slots at p * K (nothing past count, the
+   1 / (1 - t_sel) normalization folded into the weights); volume writes at offsets[p] (CSR,
+   after a counting pass and a scan). */
 #include "common.h"
-
-#define RAY_ARGS __global const int2 *ranges, __global const int *ids, \
-    __global const float8 *splats, __global const int2 *pixels, const int full, \
-    const int width, const int height, const int tiles_x
-
-/* Sets x, y, p, range, px, py of ray gid; returns from the kernel for padding rays. */
-#define RAY_SETUP \
-    int x, y, p; \
-    if (!ray_pixel(get_global_id(0), full, pixels, width, height, tiles_x, &x, &y, &p)) return; \
-    const int2 range = ranges[pixel_tile(x, y, tiles_x)]; \
-    const float px = x + 0.5f, py = y + 0.5f;
 
 /* Divide the n weights T^Q_j alpha'_j by 1 - T^Q. 1 - T^Q equals their sum exactly (telescoping);
    the sum of positive terms is the better conditioned of the two in float (1 - T^Q cancels when
    alpha is small), and makes the normalized weights sum to 1 to rounding. */
-inline void normalize(__global float *w, int n) {
+static inline void normalize_weights(__global float *w, int n) {
     float sum = 0.f;
     for (int j = 0; j < n; j++) sum += w[j];
     for (int j = 0; j < n; j++) w[j] /= sum;
 }
 
-/* Q-Render selection, Algorithm 1 of the paper. */
-__kernel void select_quantile(RAY_ARGS, const int K, __global int *out_ids, __global float *out_w,
+/* Q-Render selection, Algorithm 1 of the paper, for each lane: a Gaussian whose T_test crosses
+   the lane's next boundary 1 - (k+1)/(K+1) is a quantile Gaussian (w^Q = T^Q alpha'); the walk
+   stops once T_test < 1/(K+1). */
+__kernel void select_quantile(BLOCK_ARGS, const int K, __global int *out_ids, __global float *out_w,
                               __global int *count, __global float *t_walk,
                               __global float *t_sel, __global float *t_rem) {
-    RAY_SETUP
-    __global int *sid = out_ids + (size_t)p * K;
-    __global float *sw = out_w + (size_t)p * K;
+    lanef px, py;
+    lanei row;
+    const int2 range = block_rays(get_global_id(0), full, ranges, pixels, order, blocks, width, height,
+                                  tiles_x, &px, &py, &row);
     const float stop = 1.f / (float)(K + 1);
-    float T = 1.f, TQ = 1.f;
-    int k = 0, n = 0;
-    for (int i = range.x; i < range.y; i++) {
+    lanef T = (lanef)(1.f), TQ = (lanef)(1.f), bound = (lanef)(quantile_boundary(0, K));
+    lanei k = (lanei)(0), n = (lanei)(0), done = row < 0;
+    for (int i = range.x; i < range.y && !all(done); i++) {
         const int g = ids[i];
-        const float a = splat_alpha(splats[g], px, py);
-        if (a == 0.f) continue;
-        const float T_test = T * (1.f - a);
-        if (T_test < quantile_boundary(k, K)) {     /* crosses the next boundary: a quantile */
-            sid[n] = g;
-            sw[n] = TQ * a;                          /* w^Q = T^Q alpha' */
-            n++;
-            TQ *= 1.f - a;
-            k++;
-            while (T_test < quantile_boundary(k, K)) k++;   /* skip boundaries also crossed */
-        }
-        T = T_test;
-        if (T_test < stop) break;
+        const lanef a = block_alpha(splats[g], px, py);
+        const lanei use = (a > 0.f) & ~done;
+        if (!any(use)) continue;
+        const lanef T_test = T * (1.f - a);
+        const lanei cross = use & (T_test < bound);
+        if (any(cross))                                   /* a quantile in some lanes (rare) */
+            for (int l = 0; l < TILE; l++) {
+                if (!LANE_I(cross, l)) continue;
+                const size_t slot = (size_t)LANE_I(row, l) * K + LANE_I(n, l)++;
+                out_ids[slot] = g;
+                out_w[slot] = LANE(TQ, l) * LANE(a, l);   /* w^Q = T^Q alpha' */
+                LANE(TQ, l) *= 1.f - LANE(a, l);
+                int kl = LANE_I(k, l) + 1;
+                while (LANE(T_test, l) < quantile_boundary(kl, K)) kl++;   /* boundaries also crossed */
+                LANE_I(k, l) = kl;
+                LANE(bound, l) = quantile_boundary(kl, K);
+            }
+        T = select(T, T_test, use);
+        done |= use & (T_test < stop);
     }
-    normalize(sw, n);
-    for (int j = n; j < K; j++) { sid[j] = -1; sw[j] = 0.f; }
-    count[p] = n; t_walk[p] = T; t_sel[p] = TQ; t_rem[p] = n ? 0.f : 1.f;
+    for (int l = 0; l < TILE; l++) {
+        const int p = LANE_I(row, l), nl = LANE_I(n, l);
+        if (p < 0) continue;
+        normalize_weights(out_w + (size_t)p * K, nl);
+        count[p] = nl; t_walk[p] = LANE(T, l); t_sel[p] = LANE(TQ, l); t_rem[p] = nl ? 0.f : 1.f;
+    }
 }
 
 /* Min-heap order of (weight, list position): the smaller weight, or on a tie the later
    position (so the K largest weights are kept, earlier depth first on ties). */
-inline int heap_less(float wa, int pa, float wb, int pb) { return wa < wb || (wa == wb && pa > pb); }
+static inline int heap_less(float wa, int pa, float wb, int pb) { return wa < wb || (wa == wb && pa > pb); }
 
-inline void heap_sift_down(__global float *hw, __global int *hp, int i, int n) {
+static inline void heap_sift_down(__global float *hw, __global int *hp, int i, int n) {
     for (;;) {
         int m = i;
         const int l = 2 * i + 1, r = l + 1;
@@ -77,8 +78,23 @@ inline void heap_sift_down(__global float *hw, __global int *hp, int i, int n) {
     }
 }
 
+/* Keep (w, position i) among the K largest of the n entries of the min-heap (hw, hp). */
+static inline void heap_offer(__global float *hw, __global int *hp, int *n, int K, float w, int i) {
+    if (*n < K) {                                     /* push, sift up */
+        int j = (*n)++;
+        while (j > 0 && heap_less(w, i, hw[(j - 1) / 2], hp[(j - 1) / 2])) {
+            hw[j] = hw[(j - 1) / 2]; hp[j] = hp[(j - 1) / 2];
+            j = (j - 1) / 2;
+        }
+        hw[j] = w; hp[j] = i;
+    } else if (w > hw[0]) {                           /* replace the smallest kept weight */
+        hw[0] = w; hp[0] = i;
+        heap_sift_down(hw, hp, 0, K);
+    }
+}
+
 /* Max-heap sift on positions alone (heapsort of the kept positions into depth order). */
-inline void pos_sift_down(__global int *hp, int i, int n) {
+static inline void pos_sift_down(__global int *hp, int i, int n) {
     for (;;) {
         int m = i;
         const int l = 2 * i + 1, r = l + 1;
@@ -90,88 +106,79 @@ inline void pos_sift_down(__global int *hp, int i, int n) {
     }
 }
 
-/* top-K selection: the K largest V-Render weights w_i = T_i alpha'_i (bounded min-heap kept in
-   the ray's output row, O(N log K)), then re-composited in depth order among the selected. */
-__kernel void select_topk(RAY_ARGS, const int K, __global int *out_ids, __global float *out_w,
+/* top-K selection: the K largest V-Render weights w_i = T_i alpha'_i of each lane (bounded
+   min-heap kept in the ray's output row, O(N log K)), then re-composited in depth order among
+   the selected. */
+__kernel void select_topk(BLOCK_ARGS, const int K, __global int *out_ids, __global float *out_w,
                           __global int *count, __global float *t_walk,
                           __global float *t_sel, __global float *t_rem) {
-    RAY_SETUP
-    __global int *hp = out_ids + (size_t)p * K;      /* heap: list positions ... */
-    __global float *hw = out_w + (size_t)p * K;      /* ... and their V-Render weights */
-    float T = 1.f;
-    int n = 0;
-    for (int i = range.x; i < range.y; i++) {
-        const float a = splat_alpha(splats[ids[i]], px, py);
-        if (a == 0.f) continue;
-        const float next_T = T * (1.f - a);
-        if (next_T <= T_MIN) break;                  /* the V-Render walk */
-        const float w = a * T;
-        if (n < K) {                                 /* push, sift up */
-            int j = n++;
-            while (j > 0 && heap_less(w, i, hw[(j - 1) / 2], hp[(j - 1) / 2])) {
-                hw[j] = hw[(j - 1) / 2]; hp[j] = hp[(j - 1) / 2];
-                j = (j - 1) / 2;
-            }
-            hw[j] = w; hp[j] = i;
-        } else if (w > hw[0]) {                      /* replace the smallest kept weight */
-            hw[0] = w; hp[0] = i;
-            heap_sift_down(hw, hp, 0, K);
+    lanef px, py;
+    lanei row;
+    const int2 range = block_rays(get_global_id(0), full, ranges, pixels, order, blocks, width, height,
+                                  tiles_x, &px, &py, &row);
+    int n[TILE];
+    for (int l = 0; l < TILE; l++) n[l] = 0;
+    VOLUME_WALK(range, px, py, row,
+        for (int l = 0; l < TILE; l++)
+            if (LANE_I(use, l)) {
+                const size_t r = (size_t)LANE_I(row, l) * K;
+                heap_offer(out_w + r, out_ids + r, &n[l], K, LANE(w, l), i_);
+            })
+    for (int l = 0; l < TILE; l++) {
+        const int p = LANE_I(row, l), nl = n[l];
+        if (p < 0) continue;
+        __global int *hp = out_ids + (size_t)p * K;   /* heap: list positions ... */
+        __global float *hw = out_w + (size_t)p * K;   /* ... and their V-Render weights */
+        for (int j = nl / 2 - 1; j >= 0; j--) pos_sift_down(hp, j, nl);    /* heapsort positions */
+        for (int end = nl - 1; end > 0; end--) {
+            const int t = hp[0]; hp[0] = hp[end]; hp[end] = t;
+            pos_sift_down(hp, 0, end);
         }
-        T = next_T;
+        float TQ = 1.f;                               /* re-composite in depth order */
+        for (int j = 0; j < nl; j++) {
+            const int g = ids[hp[j]];
+            const float a = splat_alpha(splats[g], LANE(px, l), LANE(py, l));
+            hp[j] = g;
+            hw[j] = TQ * a;
+            TQ *= 1.f - a;
+        }
+        normalize_weights(hw, nl);
+        count[p] = nl; t_walk[p] = LANE(T, l); t_sel[p] = TQ; t_rem[p] = nl ? 0.f : 1.f;
     }
-    for (int j = n / 2 - 1; j >= 0; j--) pos_sift_down(hp, j, n);   /* heapsort positions */
-    for (int end = n - 1; end > 0; end--) {
-        const int t = hp[0]; hp[0] = hp[end]; hp[end] = t;
-        pos_sift_down(hp, 0, end);
-    }
-    float TQ = 1.f;                                  /* re-composite in depth order */
-    for (int j = 0; j < n; j++) {
-        const int g = ids[hp[j]];
-        const float a = splat_alpha(splats[g], px, py);
-        hp[j] = g;
-        hw[j] = TQ * a;
-        TQ *= 1.f - a;
-    }
-    normalize(hw, n);
-    for (int j = n; j < K; j++) { hp[j] = -1; hw[j] = 0.f; }
-    count[p] = n; t_walk[p] = T; t_sel[p] = TQ; t_rem[p] = n ? 0.f : 1.f;
 }
 
 /* V-Render selection, counting pass: entries per ray and the final T. */
-__kernel void volume_count(RAY_ARGS, __global int *count, __global float *t_walk) {
-    RAY_SETUP
-    float T = 1.f;
-    int n = 0;
-    for (int i = range.x; i < range.y; i++) {
-        const float a = splat_alpha(splats[ids[i]], px, py);
-        if (a == 0.f) continue;
-        const float next_T = T * (1.f - a);
-        if (next_T <= T_MIN) break;
-        n++;
-        T = next_T;
+__kernel void volume_count(BLOCK_ARGS, __global int *count, __global float *t_walk) {
+    lanef px, py;
+    lanei row;
+    const int2 range = block_rays(get_global_id(0), full, ranges, pixels, order, blocks, width, height,
+                                  tiles_x, &px, &py, &row);
+    lanei n = (lanei)(0);
+    VOLUME_WALK(range, px, py, row, n -= use)         /* use is -1 where a lane blends */
+    for (int l = 0; l < TILE; l++) {
+        const int p = LANE_I(row, l);
+        if (p >= 0) { count[p] = LANE_I(n, l); t_walk[p] = LANE(T, l); }
     }
-    count[p] = n; t_walk[p] = T;
 }
 
 /* V-Render selection, fill pass: every Gaussian V-Render blends, w_i = T_i alpha'_i, at offsets[p]
    (exclusive scan of count). The background weight is the final T. */
-__kernel void volume_fill(RAY_ARGS, __global const int *offsets, __global int *out_ids,
+__kernel void volume_fill(BLOCK_ARGS, __global const int *offsets, __global int *out_ids,
                           __global float *out_w, __global float *t_sel, __global float *t_rem) {
-    RAY_SETUP
-    __global int *sid = out_ids + offsets[p];
-    __global float *sw = out_w + offsets[p];
-    float T = 1.f;
-    int n = 0;
-    for (int i = range.x; i < range.y; i++) {
-        const int g = ids[i];
-        const float a = splat_alpha(splats[g], px, py);
-        if (a == 0.f) continue;
-        const float next_T = T * (1.f - a);
-        if (next_T <= T_MIN) break;
-        sid[n] = g;
-        sw[n] = a * T;
-        n++;
-        T = next_T;
+    lanef px, py;
+    lanei row;
+    const int2 range = block_rays(get_global_id(0), full, ranges, pixels, order, blocks, width, height,
+                                  tiles_x, &px, &py, &row);
+    int slot[TILE];
+    for (int l = 0; l < TILE; l++) slot[l] = LANE_I(row, l) >= 0 ? offsets[LANE_I(row, l)] : 0;
+    VOLUME_WALK(range, px, py, row,
+        for (int l = 0; l < TILE; l++)
+            if (LANE_I(use, l)) {
+                out_ids[slot[l]] = g;
+                out_w[slot[l]++] = LANE(w, l);
+            })
+    for (int l = 0; l < TILE; l++) {
+        const int p = LANE_I(row, l);
+        if (p >= 0) { t_sel[p] = LANE(T, l); t_rem[p] = LANE(T, l); }
     }
-    t_sel[p] = T; t_rem[p] = T;
 }

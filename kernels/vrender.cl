@@ -1,28 +1,37 @@
 /* Fused V-Render forward (full alpha blending, no stored selection): the speed baseline.
 
-   One work-item per pixel, pixels numbered tile-major so that neighbouring work-items walk the
-   same tile list. The walk (alpha, transmittance) is done once per pixel; contributing
-   Gaussians are buffered BATCH at a time as (id, weight) and then blended into the pixel's
-   output row chunk by chunk, NV vectors of VW channels per chunk (explicit vector types are
-   what PoCL turns into SIMD code). Feature rows have cstride floats, a multiple of VW * NV. */
+   One work-item per block of TILE pixels (a row of a tile) walks the tile list once for all of
+   them (the block walk of common.h). Gaussians that some pixel blends are buffered BATCH at a time
+   as (id, per-pixel weights) and then blended into each pixel's output row chunk by chunk, NV
+   vectors of VW channels per chunk, in depth order (a pixel's zero weights are skipped, so each
+   pixel sums exactly its own contributions). Feature rows have cstride floats, a multiple of
+   VW * NV. */
 #include "common.h"
 
 #define BATCH 32
 
-/* out[c] = (init ? 0 : out[c]) + sum_j w[j] * features[id[j], c] + bg_scale * background[c]. */
-inline void blend_batch(__global float *out, __global const float *features, const int cstride,
-                        const int *id, const float *w, const int count, const int init,
-                        const float bg_scale, __global const float *background) {
-    for (int c0 = 0; c0 < cstride; c0 += NV * VW) {
-        vec_t acc[NV];
-        for (int v = 0; v < NV; v++) acc[v] = init ? (vec_t)(0.f) : VLOAD(v, out + c0);
-        for (int j = 0; j < count; j++) {
-            __global const float *row = features + (size_t)id[j] * cstride + c0;
-            for (int v = 0; v < NV; v++) acc[v] += w[j] * VLOAD(v, row);
+/* For each lane l with row[l] >= 0: out_l[c] = (init ? 0 : out_l[c]) + sum_j w[j]_l features[id[j], c]
+   + bg_scale_l * background[c], out_l the lane's row of image. */
+static inline void blend_batch(__global float *image, __global const float *features, const int cstride,
+                               const int *id, const lanef *w, const int count, const lanei row,
+                               const int init, const lanef bg_scale, __global const float *background) {
+    for (int l = 0; l < TILE; l++) {
+        if (LANE_I(row, l) < 0) continue;
+        __global float *out = image + (size_t)LANE_I(row, l) * cstride;
+        const float bg = LANE(bg_scale, l);
+        for (int c0 = 0; c0 < cstride; c0 += NV * VW) {
+            vec_t acc[NV];
+            for (int v = 0; v < NV; v++) acc[v] = init ? (vec_t)(0.f) : VLOAD(v, out + c0);
+            for (int j = 0; j < count; j++) {
+                const float wj = LANE(w[j], l);
+                if (wj == 0.f) continue;
+                __global const float *f = features + (size_t)id[j] * cstride + c0;
+                for (int v = 0; v < NV; v++) acc[v] += wj * VLOAD(v, f);
+            }
+            if (bg != 0.f)
+                for (int v = 0; v < NV; v++) acc[v] += bg * VLOAD(v, background + c0);
+            for (int v = 0; v < NV; v++) VSTORE(acc[v], v, out + c0);
         }
-        if (bg_scale != 0.f)
-            for (int v = 0; v < NV; v++) acc[v] += bg_scale * VLOAD(v, background + c0);
-        for (int v = 0; v < NV; v++) VSTORE(acc[v], v, out + c0);
     }
 }
 
@@ -36,40 +45,29 @@ __kernel void vrender(__global const int2 *ranges,     /* [tiles] [start, end) i
                       __global float *image,           /* [H*W, cstride] */
                       __global float *alpha,           /* [H*W] 1 - T */
                       __global float *depth) {         /* [H*W] expected depth */
-    const int gid = get_global_id(0);
-    const int tile = gid / (TILE * TILE), in_tile = gid % (TILE * TILE);
-    const int x = (tile % tiles_x) * TILE + in_tile % TILE;
-    const int y = (tile / tiles_x) * TILE + in_tile / TILE;
-    if (x >= width || y >= height) return;
-    const float px = x + 0.5f, py = y + 0.5f;      /* pixel centre */
-    const int pix = y * width + x;
-    __global float *out = image + (size_t)pix * cstride;
-
+    lanef px, py;
+    lanei row;
+    const int2 range = block_rays(get_global_id(0), 1, ranges, 0, 0, 0, width, height, tiles_x,
+                                  &px, &py, &row);
     int batch_id[BATCH];
-    float batch_w[BATCH];
+    lanef batch_w[BATCH];
     int count = 0, init = 1;
-    float T = 1.f, depth_sum = 0.f;
-    const int2 range = ranges[tile];
-    for (int k = range.x; k < range.y; k++) {
-        const int g = ids[k];
-        const float8 s = splats[g];
-        const float sig = splat_sigma(s.s2, s.s3, s.s4, s.s0 - px, s.s1 - py);
-        if (sig < 0.f) continue;
-        const float a = min(ALPHA_MAX, s.s5 * exp(-sig));
-        if (a < ALPHA_MIN) continue;
-        const float next_T = T * (1.f - a);
-        if (next_T <= T_MIN) break;
+    lanef depth_sum = (lanef)(0.f);
+    VOLUME_WALK(range, px, py, row,
         batch_id[count] = g;
-        batch_w[count] = a * T;                    /* w_i = T_i alpha'_i */
-        depth_sum += a * T * s.s6;
-        T = next_T;
+        batch_w[count] = w;                            /* w_i = T_i alpha'_i */
+        depth_sum += w * s.s6;
         if (++count == BATCH) {
-            blend_batch(out, features, cstride, batch_id, batch_w, count, init, 0.f, background);
+            blend_batch(image, features, cstride, batch_id, batch_w, count, row, init, (lanef)(0.f),
+                        background);
             count = 0;
             init = 0;
-        }
+        })
+    blend_batch(image, features, cstride, batch_id, batch_w, count, row, init,
+                use_bg ? T : (lanef)(0.f), background);
+    const lanef d = select((lanef)(0.f), depth_sum / (1.f - T), T < 1.f);
+    for (int l = 0; l < TILE; l++) {
+        const int p = LANE_I(row, l);
+        if (p >= 0) { alpha[p] = 1.f - LANE(T, l); depth[p] = LANE(d, l); }
     }
-    blend_batch(out, features, cstride, batch_id, batch_w, count, init, use_bg ? T : 0.f, background);
-    alpha[pix] = 1.f - T;
-    depth[pix] = T < 1.f ? depth_sum / (1.f - T) : 0.f;
 }

@@ -23,6 +23,10 @@ import pyopencl.array as cla
 from ..runtime import SAMPLERS, TILE, check_buffer, exclusive_scan, last_value
 from .binning import RasterPlan
 
+#: Work-group size of the block kernels (select.cl, vrender.cl): PoCL runs the work-items of a group
+#: on one thread's stack, and its default groups of up to 4096 overflow it with the block walk's
+#: private batches (garbage or a crash on a 640x480 image), so the size is set, not left to the driver.
+BLOCK_GROUP = (TILE,)
 MAX_CHUNKS = 64               # rays are split into at most this many chunks for the transpose
 MAX_HIST = 1 << 24            # ... and n_gaussians * chunks stays below this many ints
 
@@ -135,11 +139,38 @@ def check_pixels(pixels, width: int, height: int) -> np.ndarray:
 
 
 def ray_launch(plan: RasterPlan, pixels: np.ndarray | None) -> tuple[int, int]:
-    """(global size, full-image flag) of a per-ray kernel: the whole image is launched tile-major
-    over whole tiles (padding rays return at once), a pixel subset one work-item per pixel."""
+    """(global size, full-image flag) of a kernel with one work-item per ray (blend.cl): the whole
+    image is launched tile-major over whole tiles (padding rays return at once), a pixel subset
+    one work-item per pixel."""
     if pixels is None:
         return plan.tiles_x * plan.tiles_y * TILE * TILE, 1
     return len(pixels), 0
+
+
+def ray_blocks(plan: RasterPlan, pixels: np.ndarray | None) -> tuple[int, dict]:
+    """(global size, arguments) of a kernel with one work-item per block of rays (BLOCK_ARGS of
+    kernels/common.h): the whole image in blocks of a tile row; a pixel subset grouped by tile
+    (stable order) into blocks of at most TILE rays: blocks [B, 4] = (first, count, tile, 0) into
+    order [P], the ray indices sorted by tile. B is a multiple of TILE, the work-group size of
+    block kernels (:data:`BLOCK_GROUP`)."""
+    q = plan.runtime.queue
+    if pixels is None:
+        unused = cla.zeros(q, 4, np.int32)
+        return plan.tiles_x * plan.tiles_y * TILE, dict(plan.ray_args(), full=1, pixels=unused,
+                                                          order=unused, blocks=unused)
+    tile = (pixels[:, 1] // TILE) * plan.tiles_x + pixels[:, 0] // TILE
+    order = np.argsort(tile, kind="stable").astype(np.int32)
+    sorted_tile = tile[order]
+    starts = np.flatnonzero(np.r_[True, sorted_tile[1:] != sorted_tile[:-1]])
+    run_len = np.diff(np.r_[starts, len(order)])
+    per_run = -(-run_len // TILE)                                   # blocks per run of one tile
+    run = np.repeat(np.arange(len(starts)), per_run)                # the run of each block
+    first = starts[run] + TILE * (np.arange(len(run)) - np.repeat(np.cumsum(per_run) - per_run, per_run))
+    blocks = np.zeros((-(-len(run) // TILE) * TILE, 4), np.int64)   # padded with empty blocks
+    blocks[:len(run), :3] = np.stack([first, np.minimum(TILE, starts[run] + run_len[run] - first),
+                                      sorted_tile[first]], 1)
+    return len(blocks), dict(plan.ray_args(), full=0, pixels=cla.to_device(q, pixels),
+                             order=cla.to_device(q, order), blocks=cla.to_device(q, blocks.astype(np.int32)))
 
 
 def check_sampler(sampler: str, k) -> int:
@@ -172,23 +203,23 @@ def select(plan: RasterPlan, sampler: str = "quantile", k: int = 40, pixels=None
     if n_rays == 0:
         return Selection(plan, sampler, k, pixels, cla.empty(q, 1, np.int32), cla.empty(q, 1, np.float32),
                          cla.zeros(q, 1, np.int32), count, t_walk, t_sel, t_rem)
-    size, full = ray_launch(plan, pixels)
-    rays = dict(plan.ray_args(), full=full, pixels=cla.to_device(q, pixels if pixels is not None
-                                                              else np.zeros((1, 2), np.int32)))
+    size, rays = ray_blocks(plan, pixels)
     if sampler == "volume":
         offsets = cla.zeros(q, n_rays, np.int32)
-        rt.launch("volume_count", size, **rays, count=count, t_walk=t_walk)
+        rt.launch("volume_count", size, local_size=BLOCK_GROUP, **rays, count=count, t_walk=t_walk)
         exclusive_scan(rt, count, offsets)
         total = last_value(offsets) + last_value(count[:n_rays])
         check_buffer(rt, 4 * total, f"the volume selection of {n_rays} rays ({total} entries)")
         ids, weights = cla.empty(q, max(total, 1), np.int32), cla.empty(q, max(total, 1), np.float32)
-        rt.launch("volume_fill", size, **rays, offsets=offsets, out_ids=ids, out_w=weights,
+        rt.launch("volume_fill", size, local_size=BLOCK_GROUP, **rays, offsets=offsets, out_ids=ids,
+                  out_w=weights,
                   t_sel=t_sel, t_rem=t_rem)
     else:
         check_buffer(rt, 4 * n_rays * k, f"the {sampler} selection of {n_rays} rays x K={k}")
         ids, weights = cla.empty(q, n_rays * k, np.int32), cla.empty(q, n_rays * k, np.float32)
         offsets = cla.arange(q, 0, n_rays * k, k, dtype=np.int32)
-        rt.launch(f"select_{sampler}", size, **rays, K=k, out_ids=ids, out_w=weights, count=count,
+        rt.launch(f"select_{sampler}", size, local_size=BLOCK_GROUP, **rays, K=k, out_ids=ids,
+                  out_w=weights, count=count,
                   t_walk=t_walk, t_sel=t_sel, t_rem=t_rem)
     return Selection(plan, sampler, k, pixels, ids, weights, offsets, count, t_walk, t_sel, t_rem)
 

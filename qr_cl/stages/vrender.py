@@ -8,6 +8,7 @@ import pyopencl.array as cla
 
 from ..runtime import TILE, channel_layout, check_buffer, host_output, padded_vector, to_device
 from .binning import RasterPlan
+from .select import BLOCK_GROUP
 
 
 def render_fused(plan: RasterPlan, features: cla.Array, channels: int,
@@ -34,7 +35,8 @@ def render_fused(plan: RasterPlan, features: cla.Array, channels: int,
     alpha = cla.empty(rt.queue, h * w, np.float32)
     depth = cla.empty(rt.queue, h * w, np.float32)
     with host_output(rt, image) as image_buf:
-        rt.launch("vrender", plan.tiles_x * plan.tiles_y * TILE * TILE, defines={"VW": vw, "NV": nv},
+        rt.launch("vrender", plan.tiles_x * plan.tiles_y * TILE, defines={"VW": vw, "NV": nv},
+                  local_size=BLOCK_GROUP,
                   ranges=plan.ranges, ids=plan.ids, splats=plan.splats, features=features,
                   cstride=cstride, width=w, height=h, tiles_x=plan.tiles_x,
                   background=to_device(rt, padded_vector(background, channels, cstride)),
