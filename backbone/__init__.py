@@ -1,4 +1,7 @@
-"""GS-Net's 3D network in plain PyTorch: Gaussian voxelization, a sparse voxel UNet, GSNet."""
+"""GS-Net's 3D network in plain PyTorch: Gaussian voxelization, a sparse voxel UNet, GSNet.
+
+Its input is :class:`qr_cl.scene.Gaussians`, the renderer's Gaussian type.
+"""
 
 from .conv import (
     DownsampleConv3d,
@@ -9,18 +12,15 @@ from .conv import (
     UpsampleConv3d,
     sparse_conv,
 )
-from .gaussians import SH_C0, GaussianSet, quat_to_rotmat, rgb_from_sh_dc
 from .gsnet import GSNet
 from .sparse import KernelMap, KernelMapCache, SparseTensor, kernel_offsets, pack_keys, unpack_keys
 from .unet import BasicBlock, SparseUNet, UNetConfig, minkunet14, minkunet18
 from .voxelize import VoxelBatch, VoxelConfig, devoxelize, voxelize
 
 __all__ = [
-    "SH_C0",
     "BasicBlock",
     "DownsampleConv3d",
     "GSNet",
-    "GaussianSet",
     "KernelMap",
     "KernelMapCache",
     "SparseBatchNorm",
@@ -38,8 +38,6 @@ __all__ = [
     "minkunet14",
     "minkunet18",
     "pack_keys",
-    "quat_to_rotmat",
-    "rgb_from_sh_dc",
     "sparse_conv",
     "unpack_keys",
     "voxelize",

@@ -7,7 +7,7 @@ from typing import Sequence
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .gaussians import GaussianSet
+from ..scene.gaussians import Gaussians
 from .sparse import SparseTensor
 from .unet import SparseUNet, UNetConfig, minkunet14
 from .voxelize import Reduce, VoxelBatch, VoxelConfig, devoxelize, voxelize
@@ -47,13 +47,14 @@ class GSNet(nn.Module):
         self.unet = SparseUNet(unet_config)
         self.head = nn.Linear(unet_config.out_channels, feature_dim)
 
-    def prepare(self, scenes: GaussianSet | Sequence[GaussianSet]) -> VoxelBatch:
-        """Voxelize scenes with this network's voxel config.
+    def prepare(self, scenes: Gaussians | Sequence[Gaussians]) -> VoxelBatch:
+        """Voxelize one scene's or several scenes' Gaussians (numpy or torch storage) with this
+        network's voxel config.
 
         The result depends on the (frozen) Gaussians only: keep it across training steps, and its
         kernel maps, built by the first forward, are reused.
         """
-        return voxelize([scenes] if isinstance(scenes, GaussianSet) else scenes, self.voxel_config)
+        return voxelize(scenes, self.voxel_config)
 
     def forward(self, batch: VoxelBatch) -> Tensor:
         """Features ``[N, feature_dim]`` with unit L2 norm, rows in the order of the batch's Gaussians."""

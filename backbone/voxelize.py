@@ -15,7 +15,7 @@ from typing import Literal, Sequence
 import torch
 from torch import Tensor
 
-from .gaussians import GaussianSet
+from ..scene.gaussians import Gaussians
 from .sparse import MAX_BATCH, KernelMapCache, pack_keys, unpack_keys
 
 SampleShape = Literal["center", "volume"]
@@ -106,15 +106,15 @@ class VoxelBatch:
         return torch.split(per_gaussian, list(self.gaussians_per_scene))
 
 
-def _samples(g: GaussianSet, config: VoxelConfig) -> tuple[Tensor, Tensor, Tensor]:
-    """Samples of one scene: Gaussian index ``[S]``, voxel index ``[S, 3]`` int64, opacity ``[S]``."""
+def _samples(g: Gaussians, config: VoxelConfig) -> tuple[Tensor, Tensor, Tensor]:
+    """Samples of one scene (torch storage): Gaussian index ``[S]``, voxel index ``[S, 3]`` int64, opacity ``[S]``."""
     grid = config.grid_size
-    means = g.means.float()
+    means = g.means
     home = torch.floor(means / grid).to(torch.int64)
     n = len(g)
     if config.sample_shape == "center":
-        return torch.arange(n), home, g.opacities.float()
-    reach = 3.0 * g.axis_sigmas().float()
+        return torch.arange(n), home, g.opacities
+    reach = 3.0 * g.axis_sigmas()
     lo = torch.maximum(torch.floor((means - reach) / grid).to(torch.int64), home - config.max_extent)
     hi = torch.minimum(torch.floor((means + reach) / grid).to(torch.int64), home + config.max_extent)
     extent = hi - lo + 1
@@ -132,31 +132,34 @@ def _samples(g: GaussianSet, config: VoxelConfig) -> tuple[Tensor, Tensor, Tenso
     step = torch.stack([local // (ext[:, 1] * ext[:, 2]), (local // ext[:, 2]) % ext[:, 1], local % ext[:, 2]], 1)
     voxel = lo[gid] + step
     diff = (voxel.float() + 0.5) * grid - means[gid]
-    local_axes = torch.einsum("sij,si->sj", g.rotations().float()[gid], diff)
-    maha2 = ((local_axes / g.scales.float()[gid].clamp_min(1e-12)) ** 2).sum(1)
-    return gid, voxel, g.opacities.float()[gid] * torch.exp(-0.5 * maha2)
+    local_axes = torch.einsum("sij,si->sj", g.rotations()[gid], diff)
+    maha2 = ((local_axes / g.scales[gid].clamp_min(1e-12)) ** 2).sum(1)
+    return gid, voxel, g.opacities[gid] * torch.exp(-0.5 * maha2)
 
 
-def _sample_features(g: GaussianSet, gid: Tensor, voxel: Tensor, config: VoxelConfig) -> Tensor:
-    """Per-sample features except opacity ``[S, F - 1]``: offset, rgb, then the optional ones."""
+def _sample_features(g: Gaussians, gid: Tensor, voxel: Tensor, config: VoxelConfig) -> Tensor:
+    """Per-sample features except opacity ``[S, F - 1]`` (torch storage): offset, rgb, then the optional ones."""
     grid = config.grid_size
-    offset = g.means.float()[gid] / grid - (voxel.float() + 0.5)
-    parts = [offset, g.rgb.float()[gid]]
+    offset = g.means[gid] / grid - (voxel.float() + 0.5)
+    parts = [offset, g.rgb[gid]]
     if config.use_scale:
-        parts.append(torch.log(g.scales.float().clamp_min(1e-12) / grid)[gid])
+        parts.append(torch.log(g.scales.clamp_min(1e-12) / grid)[gid])
     if config.use_rotation:
-        q = g.quats.float()
+        q = g.quats
         parts.append(torch.where(q[:, :1] < 0, -q, q)[gid])
     if config.sh_rest_coeffs:
-        have = 0 if g.sh_rest is None else g.sh_rest.shape[1]
+        have = g.sh_rest.shape[1]
         if have < config.sh_rest_coeffs:
             raise ValueError(f"the config uses {config.sh_rest_coeffs} SH rest coefficients, the Gaussians have {have}")
-        parts.append(g.sh_rest[:, : config.sh_rest_coeffs].float().reshape(len(g), -1)[gid])
+        parts.append(g.sh_rest[:, : config.sh_rest_coeffs].reshape(len(g), -1)[gid])
     return torch.cat(parts, 1)
 
 
-def voxelize(scenes: Sequence[GaussianSet], config: VoxelConfig = VoxelConfig()) -> VoxelBatch:
+def voxelize(scenes: Gaussians | Sequence[Gaussians], config: VoxelConfig = VoxelConfig()) -> VoxelBatch:
     """Voxelize one or more scenes (scene b gets batch index b) into a :class:`VoxelBatch`.
+
+    Each scene is a :class:`qr_cl.scene.Gaussians`, numpy or torch storage (numpy arrays are
+    viewed as tensors without a copy); the Gaussians validated their fields on construction.
 
     Voxel features ``[M, config.num_features]``, in this order:
     offset of the Gaussian mean from the voxel centre in voxel units (3; in [-0.5, 0.5) for
@@ -165,8 +168,7 @@ def voxelize(scenes: Sequence[GaussianSet], config: VoxelConfig = VoxelConfig())
     a voxel are merged by a mean weighted by sample opacity (+1e-6), except opacity, which becomes
     the union ``1 - prod(1 - o)``.
     """
-    if isinstance(scenes, GaussianSet):
-        scenes = [scenes]
+    scenes = [g.to_torch() for g in ([scenes] if isinstance(scenes, Gaussians) else scenes)]
     if len(scenes) > MAX_BATCH:
         raise ValueError(f"at most {MAX_BATCH} scenes per batch, got {len(scenes)}")
     keys, gids, opac, feats = [], [], [], []

@@ -4,14 +4,15 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from qr_cl.backbone import GaussianSet, GSNet, SparseTensor, SparseUNet, VoxelConfig, devoxelize, minkunet14, minkunet18
+from qr_cl.backbone import GSNet, SparseTensor, SparseUNet, VoxelConfig, devoxelize, minkunet14, minkunet18
+from qr_cl.scene import Gaussians
 
 SMALL = dict(stem_channels=8, stem_kernel=3, enc_channels=(8, 16, 16), enc_blocks=(1, 1, 1), dec_channels=(16, 8, 8), dec_blocks=(1, 1, 1))
 
 
-def random_gaussians(n: int, seed: int) -> GaussianSet:
+def random_gaussians(n: int, seed: int) -> Gaussians:
     g = torch.Generator().manual_seed(seed)
-    return GaussianSet(
+    return Gaussians.from_rgb(
         torch.rand(n, 3, generator=g) * 0.6, torch.randn(n, 4, generator=g), torch.rand(n, 3, generator=g) * 0.03 + 1e-3,
         torch.rand(n, generator=g) * 0.9 + 0.05, torch.rand(n, 3, generator=g),
     )
@@ -119,7 +120,7 @@ def test_kernel_maps_are_built_once_per_batch():
 def test_empty_and_single_gaussian_scenes():
     torch.manual_seed(0)
     net = GSNet(8, VoxelConfig(grid_size=0.05), minkunet14(7, **SMALL))
-    empty = GaussianSet(torch.zeros(0, 3), torch.zeros(0, 4), torch.zeros(0, 3), torch.zeros(0), torch.zeros(0, 3))
+    empty = Gaussians.from_rgb(torch.zeros(0, 3), torch.zeros(0, 4), torch.zeros(0, 3), torch.zeros(0), torch.zeros(0, 3))
     assert net(net.prepare(empty)).shape == (0, 8)
     one = random_gaussians(1, 7)
     out = net(net.prepare(one))
@@ -151,14 +152,14 @@ def test_unet_rejects_nan_and_wrong_widths():
         unet(SparseTensor(coords, torch.zeros(coords.shape[0], 4)))
 
 
-def three_clusters(n: int, seed: int) -> tuple[GaussianSet, torch.Tensor]:
+def three_clusters(n: int, seed: int) -> tuple[Gaussians, torch.Tensor]:
     """A sheet, a rod and a ball of Gaussians with the same colour, scale and opacity statistics."""
     g = torch.Generator().manual_seed(seed)
     sheet = torch.cat([torch.rand(n, 2, generator=g) * 0.8, 0.01 * torch.randn(n, 1, generator=g)], 1)
     rod = torch.cat([0.01 * torch.randn(n, 2, generator=g), torch.rand(n, 1, generator=g) * 0.8], 1) + torch.tensor([1.2, 0.0, 0.0])
     ball = torch.randn(n, 3, generator=g) * 0.12 + torch.tensor([0.0, 1.2, 0.0])
     m = 3 * n
-    gaussians = GaussianSet(
+    gaussians = Gaussians.from_rgb(
         torch.cat([sheet, rod, ball]), torch.randn(m, 4, generator=g), torch.rand(m, 3, generator=g) * 0.02 + 0.005,
         torch.rand(m, generator=g) * 0.9 + 0.05, torch.rand(m, 3, generator=g),
     )

@@ -5,15 +5,16 @@ import math
 import pytest
 import torch
 
-from qr_cl.backbone.gaussians import SH_C0, GaussianSet, quat_to_rotmat, rgb_from_sh_dc
 from qr_cl.backbone.voxelize import VoxelConfig, devoxelize, voxelize
+from qr_cl.runtime import SH_C0
+from qr_cl.scene import Gaussians, quat_to_rotmat, rgb_from_sh_dc
 
 
 def random_gaussians(
     n: int, seed: int, extent: float = 1.0, scale: float = 0.03, sh_rest: int = 0, low: float = -0.3
-) -> GaussianSet:
+) -> Gaussians:
     g = torch.Generator().manual_seed(seed)
-    return GaussianSet(
+    return Gaussians.from_rgb(
         means=torch.rand(n, 3, generator=g) * extent + low,
         quats=torch.randn(n, 4, generator=g),
         scales=torch.rand(n, 3, generator=g) * scale + 1e-3,
@@ -23,8 +24,8 @@ def random_gaussians(
     )
 
 
-def one_gaussian(mean, scale, opacity=0.8, quat=(1.0, 0.0, 0.0, 0.0), rgb=(0.2, 0.4, 0.6)) -> GaussianSet:
-    return GaussianSet(
+def one_gaussian(mean, scale, opacity=0.8, quat=(1.0, 0.0, 0.0, 0.0), rgb=(0.2, 0.4, 0.6)) -> Gaussians:
+    return Gaussians.from_rgb(
         torch.tensor([mean], dtype=torch.float32),
         torch.tensor([quat]),
         torch.tensor([scale], dtype=torch.float32),
@@ -57,7 +58,7 @@ def test_center_sampling_puts_each_gaussian_in_the_voxel_of_its_mean():
 
 def test_gaussians_sharing_a_voxel_are_merged():
     means = torch.tensor([[0.01, 0.02, 0.03], [0.05, 0.06, 0.07], [0.5, 0.5, 0.5]])
-    g = GaussianSet(
+    g = Gaussians.from_rgb(
         means, torch.tensor([[1.0, 0, 0, 0]] * 3), torch.full((3, 3), 0.01),
         torch.tensor([0.5, 0.25, 0.9]), torch.tensor([[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0]]),
     )
@@ -166,7 +167,7 @@ def test_optional_features():
 
 def test_sh_helpers():
     sh = torch.randn(7, 16, 3)
-    g = GaussianSet.from_sh(torch.zeros(7, 3), torch.randn(7, 4), torch.ones(7, 3), torch.full((7,), 0.5), sh)
+    g = Gaussians(torch.zeros(7, 3), torch.randn(7, 4), torch.ones(7, 3), torch.full((7,), 0.5), sh)
     torch.testing.assert_close(g.rgb, (0.5 + SH_C0 * sh[:, 0]).clamp_min(0))
     torch.testing.assert_close(rgb_from_sh_dc(torch.tensor([[-10.0, 0.0, 1.0]])), torch.tensor([[0.0, 0.5, 0.5 + SH_C0]]))
     assert torch.equal(g.sh_rest, sh[:, 1:])
@@ -176,7 +177,7 @@ def test_sh_helpers():
 
 
 def test_empty_scene():
-    empty = GaussianSet(torch.zeros(0, 3), torch.zeros(0, 4), torch.zeros(0, 3), torch.zeros(0), torch.zeros(0, 3))
+    empty = Gaussians.from_rgb(torch.zeros(0, 3), torch.zeros(0, 4), torch.zeros(0, 3), torch.zeros(0), torch.zeros(0, 3))
     for shape in ("center", "volume"):
         batch = voxelize([empty, random_gaussians(10, seed=6)], VoxelConfig(grid_size=0.1, sample_shape=shape))
         assert batch.gaussians_per_scene == (0, 10)
@@ -204,7 +205,7 @@ def test_bad_gaussians_are_named(field, value, message):
     )
     fields[field] = value
     with pytest.raises(ValueError, match=message):
-        GaussianSet(**fields)
+        Gaussians.from_rgb(**fields)
 
 
 def test_bad_configs_and_inputs():

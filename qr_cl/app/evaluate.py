@@ -23,7 +23,7 @@ from ..scene import Gaussians, quat_to_rotmat
 from .data import ClassTable, SceneData, load_scene_folder
 from .images import save_rgb
 from .metrics import NYU40_NAMES, SUBSETS, miou_macc
-from .model import build_net, gaussian_set, torch_threads
+from .model import build_net, torch_threads
 
 MIN_OPACITY = 0.1
 
@@ -104,7 +104,7 @@ def network_features(checkpoint: Path | dict, scene: SceneData) -> np.ndarray:
     net.load_state_dict(ckpt["model"])
     net.eval()
     with torch.no_grad():
-        return net(net.prepare([gaussian_set(scene)])).numpy()
+        return net(net.prepare([scene.gaussians])).numpy()
 
 
 def _palette(ids) -> dict[int, np.ndarray]:

@@ -1,13 +1,13 @@
-"""GS-Net as the application builds it: UNet presets, the network, its input, and its threads."""
+"""GS-Net as the application builds it: UNet presets, the network, and its threads.
+
+The network takes a scene's Gaussians as they are (``net.prepare([scene.gaussians])``)."""
 from __future__ import annotations
 
 from contextlib import contextmanager
 
-import numpy as np
 import torch
 
-from ..backbone import GaussianSet, GSNet, VoxelConfig, minkunet14
-from .data import SceneData
+from ..backbone import GSNet, VoxelConfig, minkunet14
 
 #: UNet presets: name -> overrides of backbone.minkunet14 (empty = MinkUNet14 itself).
 NETS: dict[str, dict] = {
@@ -21,13 +21,6 @@ def build_net(net: str, feature_dim: int, grid_size: float):
     """A GSNet with the UNet preset ``net`` (see :data:`NETS`) predicting ``feature_dim``-D features."""
     voxels = VoxelConfig(grid_size=grid_size)
     return GSNet(feature_dim, voxels, minkunet14(voxels.num_features, **NETS[net]))
-
-
-def gaussian_set(scene: SceneData):
-    """The scene's Gaussians as a qr_cl.backbone.GaussianSet (torch float32)."""
-    g = scene.gaussians
-    t = [torch.from_numpy(np.ascontiguousarray(a, np.float32)) for a in (g.means, g.quats, g.scales, g.opacities, g.sh)]
-    return GaussianSet.from_sh(*t)
 
 
 @contextmanager

@@ -34,7 +34,7 @@ from tqdm import tqdm
 from ..runtime import SAMPLERS
 from .data import SceneData, load_scene_folder
 from .loss import scene_loss
-from .model import NETS, build_net, gaussian_set, torch_threads
+from .model import NETS, build_net, torch_threads
 
 @dataclass
 class TrainConfig:
@@ -106,7 +106,7 @@ class Trainer:
     def batch(self, i: int):
         """The voxelized scene ``i`` (built once; its kernel maps are cached on it)."""
         if i not in self.batches:
-            self.batches[i] = self.net.prepare([gaussian_set(self.scenes[i])])
+            self.batches[i] = self.net.prepare([self.scenes[i].gaussians])
         return self.batches[i]
 
     def train_step(self) -> tuple[float, int]:

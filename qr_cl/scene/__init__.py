@@ -1,8 +1,8 @@
 """Scenes: the Gaussian type, scene files (PLY, .splat) and cameras."""
 from .cameras import Camera, load_cameras, load_layout_instance, look_at, orbit_cameras
 from .files import load_ply, load_scene, load_splat, ply_property_names, read_ply_vertices, save_ply
-from .gaussians import Gaussians, SceneFormatError, quat_multiply, quat_to_rotmat
+from .gaussians import Gaussians, SceneFormatError, quat_multiply, quat_to_rotmat, rgb_from_sh_dc
 
 __all__ = ["Camera", "Gaussians", "SceneFormatError", "load_cameras", "load_layout_instance",
            "load_ply", "load_scene", "load_splat", "look_at", "orbit_cameras", "ply_property_names",
-           "quat_multiply", "quat_to_rotmat", "read_ply_vertices", "save_ply"]
+           "quat_multiply", "quat_to_rotmat", "read_ply_vertices", "rgb_from_sh_dc", "save_ply"]
