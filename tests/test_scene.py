@@ -142,6 +142,15 @@ def test_hostile_values_are_repaired_with_warnings(tmp_path):
     assert np.isfinite(g.means).all()
 
 
+def test_huge_log_scales_are_clamped_with_a_warning(tmp_path):
+    rows = np.array(_good_rows(3), np.float32)
+    rows[1, 7:10] = [95.0, 0.0, 1e30]     # exp overflows float32
+    write_ply(tmp_path / "big.ply", ply_property_names(0), rows)
+    with pytest.warns(UserWarning, match="clamped 1 Gaussians' log-scales"):
+        g = qr_cl.load_ply(tmp_path / "big.ply")
+    assert len(g) == 3 and np.isfinite(g.scales).all() and g.scales[1].max() > 1e30
+
+
 def test_splat_reader(tmp_path):
     rec = struct.pack("<3f3f4B4B", 1, 2, 3, 0.1, 0.2, 0.3, 255, 128, 0, 128, 255, 128, 128, 128)
     (tmp_path / "s.splat").write_bytes(rec * 3)

@@ -7,6 +7,7 @@ unnormalised w,x,y,z quaternion, ``f_rest_*`` channel-major (R coefficients 1..,
 Repairs of hostile values (each reported once per file with a warning, never silently):
 - non-unit quaternions are normalised (zero quaternions become the identity);
 - opacity logits of +/-inf are clamped to +/-``OPACITY_LOGIT_LIMIT`` (opacity 1 or 0);
+- log-scales above ``LOG_SCALE_LIMIT`` are clamped (their exp would overflow float32);
 - Gaussians with any NaN (or an infinite position, scale or colour) are dropped and counted.
 """
 from __future__ import annotations
@@ -21,6 +22,7 @@ from ..runtime.constants import SH_C0
 from .gaussians import Gaussians, SceneFormatError
 
 OPACITY_LOGIT_LIMIT = 30.0  # float32 sigmoid(30) == 1.0: a finite stand-in for +/-inf
+LOG_SCALE_LIMIT = 80.0      # exp(80) ~ 5.5e34 is finite in float32 (exp(89) is not)
 
 _PLY_TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
@@ -185,6 +187,11 @@ def _activate(path: Path, means, sh, opacity_logit, log_scales, quats) -> Gaussi
         warnings.warn(f"{path}: clamped {int(inf.sum())} infinite opacity logits to "
                       f"+/-{OPACITY_LOGIT_LIMIT:g} (opacity 1 or 0)")
     opacity_logit = np.clip(opacity_logit, -OPACITY_LOGIT_LIMIT, OPACITY_LOGIT_LIMIT)
+    huge = log_scales > LOG_SCALE_LIMIT
+    if huge.any():
+        warnings.warn(f"{path}: clamped {int(huge.any(1).sum())} Gaussians' log-scales above "
+                      f"{LOG_SCALE_LIMIT:g} (exp overflows float32)")
+        log_scales = np.minimum(log_scales, LOG_SCALE_LIMIT)
     norms = np.linalg.norm(quats, axis=1, keepdims=True)
     zero = norms[:, 0] == 0
     if zero.any():
