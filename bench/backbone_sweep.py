@@ -18,12 +18,12 @@ import resource
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 from typing import Callable
 
 import torch
 
+from qr_cl.app.timing import measure
 from qr_cl.backbone import KernelMapCache, SparseTensor, SparseUNet, SubmanifoldConv3d, minkunet14
 
 UNET_IN_CHANNELS = 7
@@ -128,17 +128,6 @@ def spconv_conv_step(coords: torch.Tensor, c_in: int, c_out: int) -> tuple[Calla
     return run, diff
 
 
-def best_of(fn: Callable[[], None], rounds: int) -> float:
-    """Minimum wall time in seconds over ``rounds`` calls, after one warm-up call."""
-    fn()
-    times = []
-    for _ in range(rounds):
-        t = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t)
-    return min(times)
-
-
 def peak_memory(coords: torch.Tensor) -> dict:
     """Peak RSS (MiB) of a fresh process doing one MinkUNet14 forward+backward on ``coords`` ``[M, 4]``.
 
@@ -193,18 +182,18 @@ def main() -> None:
         elif args.what == "unet":
             coords = room_voxels(n)
             unet = SparseUNet(minkunet14(UNET_IN_CHANNELS))
-            cold = best_of(unet_step(coords, unet, None), args.rounds)
+            cold = measure(unet_step(coords, unet, None), args.rounds)["min_s"]
             cache = KernelMapCache()
-            cached = best_of(unet_step(coords, unet, cache), args.rounds)
+            cached = measure(unet_step(coords, unet, cache), args.rounds)["min_s"]
             print(f"MinkUNet14 fwd+bwd, {n} voxels: {cold:.3f} s with map building, {cached:.3f} s with cached maps")
         else:
             coords = room_voxels(n)
             for c_in, c_out in args.channels or [(32, 32), (128, 96)]:
-                ours = best_of(ours_conv_step(coords, c_in, c_out), args.rounds)
+                ours = measure(ours_conv_step(coords, c_in, c_out), args.rounds)["min_s"]
                 line = f"subm 3^3 conv {c_in}->{c_out} fwd+bwd, {n} voxels: ours {ours:.4f} s"
                 if spconv_available():
                     run, diff = spconv_conv_step(coords, c_in, c_out)
-                    peer = best_of(run, args.rounds)
+                    peer = measure(run, args.rounds)["min_s"]
                     line += f", spconv {peer:.4f} s, ours/spconv {ours / peer:.2f} (max |diff| {diff:.2e})"
                 print(line)
 
