@@ -77,3 +77,37 @@ def test_labelled_points_round_trip(tmp_path):
                                      b"property float y\nproperty float z\nend_header\n0 0 0\n")
     with pytest.raises(SceneDataError, match=r"q.ply.*\['label'\]"):
         read_labelled_points(tmp_path / "q.ply")
+
+
+def test_langsplat_levels_keep_only_their_own_rows(scene):
+    """LangSplat stacks the features of its four levels in _f.npy and offsets level j's ids by the
+    mask counts of the levels before it: a frame keeps the chosen level's rows, re-indexed, so
+    the same object's masks at other levels are never negatives of the loss."""
+    counts = [3, 2, 4, 1]                               # masks per level, uneven
+    seg = np.full((4, 48, 64), -1, np.int32)
+    for j, c in enumerate(counts):
+        for m in range(c):
+            seg[j, :, m * 64 // c:(m + 1) * 64 // c - 1] = sum(counts[:j]) + m
+    feats = np.random.default_rng(0).normal(size=(sum(counts), 32)).astype(np.float32)
+    np.save(scene / "language_features/frame_000_s.npy", seg)
+    np.save(scene / "language_features/frame_000_f.npy", feats)
+    unit = feats / np.linalg.norm(feats, axis=1, keepdims=True)
+    for level, c in enumerate(counts):
+        frame = load_scene_folder(scene, level=level).frames[0]
+        start = sum(counts[:level])
+        assert frame.features.shape == (c, 32)
+        np.testing.assert_allclose(frame.features, unit[start:start + c], rtol=1e-6)
+        np.testing.assert_array_equal(frame.masks, np.where(seg[level] >= 0, seg[level] - start, -1))
+
+
+def test_synthetic_scenes_are_written_the_langsplat_way(source):
+    """Four levels with per-level offsets and a distinct feature for each level's mask."""
+    seg = np.load(source / "language_features/frame_000_s.npy")
+    feats = np.load(source / "language_features/frame_000_f.npy")
+    masks = int(seg[0].max()) + 1
+    assert seg.shape[0] == 4 and len(feats) == 4 * masks
+    for j in range(4):
+        np.testing.assert_array_equal(seg[j], np.where(seg[0] >= 0, seg[0] + j * masks, -1))
+    assert not np.allclose(feats[:masks], feats[masks:2 * masks])
+    frame = load_scene_folder(source, level=3).frames[0]
+    assert len(frame.features) == masks and frame.masks.max() == masks - 1

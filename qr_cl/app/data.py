@@ -6,8 +6,11 @@ Layout (real and synthetic scenes alike)::
       point_cloud.ply                 INRIA 3DGS PLY
       cameras.json                    3DGS cameras (img_name names the frame)
       language_features/<img>_s.npy   [L,H,W] (or [H,W]) mask ids per pixel, -1 = none (LangSplat:
-                                      L = 4 levels default/small/medium/large)
-      language_features/<img>_f.npy   [M,C] float mask features (rows indexed by the ids)
+                                      L = 4 levels default/small/medium/large, level j's ids
+                                      offset by the mask counts of the levels before it)
+      language_features/<img>_f.npy   [M,C] float mask features of all levels (rows indexed by
+                                      the ids); a frame keeps the chosen level's rows only, so
+                                      the other levels' masks never become negatives
       classes.json                    optional {"classes": [{"id", "name", "text_feature": [C]}]}
       labels/gaussian_labels.npy      optional [N] int class id per Gaussian (-1 = unlabelled)
       labels/points.ply               optional labelled point cloud (x, y, z, int ``label``)
@@ -122,7 +125,24 @@ def _load_frame(folder: Path, cam: Camera, level: int) -> Frame:
     if lo < -1 or hi >= len(feats):
         raise SceneDataError(f"{s_path}: frame {name!r}: mask ids range over [{lo}, {hi}] but {f_path.name} "
                              f"has {len(feats)} rows (valid ids are -1..{len(feats) - 1})")
-    return Frame(name, cam, masks, _unit_rows(feats))
+    start, end = level_rows(seg, level, len(feats))
+    return Frame(name, cam, np.where(masks >= 0, masks - start, -1).astype(np.int32), _unit_rows(feats[start:end]))
+
+
+def level_rows(seg: np.ndarray, level: int, n_rows: int) -> tuple[int, int]:
+    """The rows [start, end) of ``_f.npy`` that belong to mask level ``level`` of ``seg``
+    [levels, H, W]. LangSplat stacks the features of its levels (default, s, m, l) and offsets
+    level j's ids by the mask counts of the levels before it: level j's rows start at its
+    smallest id and end where the next level's begin. Files whose levels share ids (no
+    offsets) give every row to every level."""
+    firsts = [int(m[m >= 0].min()) if (m >= 0).any() else None for m in seg]
+    lasts = [int(m.max()) for m in seg]
+    present = [j for j, f in enumerate(firsts) if f is not None]
+    offset = all(lasts[a] < firsts[b] for a, b in zip(present, present[1:]))
+    if not offset or firsts[level] is None:
+        return 0, n_rows
+    later = [firsts[j] for j in present if j > level]
+    return firsts[level], later[0] if later else n_rows
 
 
 def _load_classes(path: Path, dim: int | None) -> ClassTable:

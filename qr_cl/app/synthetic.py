@@ -35,7 +35,8 @@ from ..scene import Camera, Gaussians, look_at, save_ply
 from .metrics import NYU40_NAMES
 from .procedural import concat, surface_gaussians
 
-GENERATOR_VERSION = 3
+GENERATOR_VERSION = 4
+LEVELS = 4            # LangSplat's mask levels (default, s, m, l)
 
 #: class id -> base RGB colour in [0,1].
 CLASS_COLOURS: dict[int, tuple[float, float, float]] = {
@@ -322,9 +323,12 @@ def write_scene(out: Path, cfg: SyntheticConfig) -> None:
         rows = np.full(len(instances) + 1, -1, np.int32)
         rows[present] = np.arange(len(present))
         seg = rows[ids]  # ids == -1 maps to rows[-1] == -1
+        # LangSplat's layout: LEVELS mask levels, level j's ids offset by j * masks, and a
+        # distinct simulated CLIP feature for each level's mask
+        segs = np.stack([np.where(seg >= 0, seg + j * len(present), -1) for j in range(LEVELS)])
         feats = np.stack([_unit(protos[classes[i]] + cfg.mask_noise * _unit(feat_rng.standard_normal(cfg.dim)))
-                          for i in present]) if present else np.zeros((0, cfg.dim))
-        np.save(lang / f"{cam.name}_s.npy", np.repeat(seg[None], 4, axis=0))
+                          for _ in range(LEVELS) for i in present]) if present else np.zeros((0, cfg.dim))
+        np.save(lang / f"{cam.name}_s.npy", segs.astype(np.int32))
         np.save(lang / f"{cam.name}_f.npy", feats.astype(np.float32))
 
     text_rng = np.random.default_rng(cfg.prototype_seed + 1)
