@@ -56,14 +56,23 @@ class GSNet(nn.Module):
         """
         return voxelize(scenes, self.voxel_config)
 
-    def forward(self, batch: VoxelBatch) -> Tensor:
-        """Features ``[N, feature_dim]`` with unit L2 norm, rows in the order of the batch's Gaussians."""
+    def forward(self, batch: VoxelBatch, rows: Tensor | None = None) -> Tensor:
+        """Features ``[N, feature_dim]`` with unit L2 norm, rows in the order of the batch's
+        Gaussians; with ``rows`` (``[U]`` int64 indices into them) only those Gaussians' features,
+        ``[U, feature_dim]``, in the order of ``rows``.
+
+        The UNet always runs on every voxel (a Gaussian's feature depends on its neighbourhood);
+        ``rows`` limits the de-voxelization, head and normalization (and their backward) to the
+        Gaussians a training step renders.
+        """
         if not isinstance(batch, VoxelBatch):
             raise TypeError(f"GSNet takes a VoxelBatch (from GSNet.prepare), got {type(batch).__name__}")
         if batch.grid_size != self.voxel_config.grid_size or batch.feats.shape[1] != self.voxel_config.num_features:
             raise ValueError("the VoxelBatch was not made with this network's voxel config: use GSNet.prepare")
         voxels = self.unet(SparseTensor(batch.coords, batch.feats, 1, batch.cache)).feats
-        if self.reduce == "mean" or batch.one_sample_per_gaussian:
+        if rows is not None:
+            feats = self.head(devoxelize(voxels, batch, self.reduce, rows))
+        elif self.reduce == "mean" or batch.one_sample_per_gaussian:
             feats = devoxelize(self.head(voxels), batch, self.reduce)
         else:
             feats = self.head(devoxelize(voxels, batch, self.reduce))

@@ -204,19 +204,40 @@ def voxelize(scenes: Gaussians | Sequence[Gaussians], config: VoxelConfig = Voxe
     )
 
 
-def devoxelize(voxel_feats: Tensor, batch: VoxelBatch, reduce: Reduce = "max") -> Tensor:
-    """Voxel features ``[M, C]`` -> Gaussian features ``[N, C]``.
+def devoxelize(voxel_feats: Tensor, batch: VoxelBatch, reduce: Reduce = "max", rows: Tensor | None = None) -> Tensor:
+    """Voxel features ``[M, C]`` -> Gaussian features ``[N, C]``, or ``[len(rows), C]`` for the
+    Gaussians ``rows`` (int64 indices into the batch's Gaussians, any order) only.
 
     Each sample takes its voxel's feature; a Gaussian's samples are reduced by ``max``
     (elementwise) or ``mean``. Gaussians sharing a voxel under ``center`` sampling get equal rows.
+    With ``rows`` only those Gaussians' samples are gathered (cost proportional to them, not to N).
     """
     if voxel_feats.dim() != 2 or voxel_feats.shape[0] != batch.coords.shape[0]:
         raise ValueError(f"voxel_feats must have shape [{batch.coords.shape[0]}, C], got {list(voxel_feats.shape)}")
     if reduce not in ("max", "mean"):
         raise ValueError(f"reduce must be 'max' or 'mean', got {reduce!r}")
+    if rows is not None:
+        return _devoxelize_rows(voxel_feats, batch, reduce, rows)
     per_sample = voxel_feats.index_select(0, batch.sample_voxel)
     if batch.one_sample_per_gaussian:
         return per_sample
     out = voxel_feats.new_zeros(batch.num_gaussians, voxel_feats.shape[1])
     index = batch.sample_gaussian[:, None].expand_as(per_sample)
+    return out.scatter_reduce(0, index, per_sample, "amax" if reduce == "max" else "mean", include_self=False)
+
+
+def _devoxelize_rows(voxel_feats: Tensor, batch: VoxelBatch, reduce: Reduce, rows: Tensor) -> Tensor:
+    """:func:`devoxelize` of the Gaussians ``rows`` [U]: [U, C]."""
+    rows = torch.as_tensor(rows, dtype=torch.int64)
+    if rows.dim() != 1 or (rows.numel() and (int(rows.min()) < 0 or int(rows.max()) >= batch.num_gaussians)):
+        raise ValueError(f"rows must be a 1-D index into the batch's {batch.num_gaussians} Gaussians")
+    if batch.one_sample_per_gaussian:        # sample g is Gaussian g
+        return voxel_feats.index_select(0, batch.sample_voxel.index_select(0, rows))
+    counts = batch.samples_per_gaussian.index_select(0, rows)
+    first = (torch.cumsum(batch.samples_per_gaussian, 0) - batch.samples_per_gaussian).index_select(0, rows)
+    local = torch.repeat_interleave(torch.arange(rows.shape[0]), counts)
+    sample = first.index_select(0, local) + torch.arange(local.shape[0]) - (torch.cumsum(counts, 0) - counts)[local]
+    per_sample = voxel_feats.index_select(0, batch.sample_voxel.index_select(0, sample))
+    out = voxel_feats.new_zeros(rows.shape[0], voxel_feats.shape[1])
+    index = local[:, None].expand_as(per_sample)
     return out.scatter_reduce(0, index, per_sample, "amax" if reduce == "max" else "mean", include_self=False)

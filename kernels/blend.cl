@@ -14,12 +14,12 @@
 __kernel void blend(__global const int *offsets, __global const int *count,
                     __global const int *sel_ids, __global const float *sel_w,
                     __global const float *features,        /* [N, cstride] */
-                    const int cstride, const int full, const int width, const int height,
+                    const int cstride, const int full, const int n_rays, const int width, const int height,
                     const int tiles_x, __global const float *background,   /* [cstride] */
                     __global const float *t_rem, const int use_bg,
                     __global float *image) {               /* [P, cstride] */
     int p;
-    if (!ray_row(get_global_id(0), full, width, height, tiles_x, &p)) return;
+    if (!ray_row(get_global_id(0), full, n_rays, width, height, tiles_x, &p)) return;
     const int c0 = get_global_id(1) * NV * VW;
     vec_t acc[NV];
     for (int v = 0; v < NV; v++) acc[v] = (vec_t)(0.f);
@@ -39,11 +39,12 @@ __kernel void blend(__global const int *offsets, __global const int *count,
 
 /* Backward gather: dF[g, chunk] = sum over Gaussian g's transposed entries of w dImage[p, chunk],
    in the fixed order of the transpose. One work-item per (Gaussian, channel chunk). */
-__kernel void blend_backward(const int n_chunks, __global const int *cursor,
+__kernel void blend_backward(const int n, const int n_chunks, __global const int *cursor,
                              __global const int *t_ray, __global const float *t_w,
                              __global const float *dimage,   /* [P, cstride] */
                              const int cstride, __global float *dfeatures) {   /* [N, cstride] */
     const int g = get_global_id(0);
+    if (g >= n) return;
     const int c0 = get_global_id(1) * NV * VW;
     const int start = g ? cursor[g * n_chunks - 1] : 0;
     const int end = cursor[(g + 1) * n_chunks - 1];

@@ -34,9 +34,9 @@ static inline float splat_sigma(float a, float b, float c, float dx, float dy) {
 
 /* Ray gid -> output row p. full != 0: the whole image, rays numbered tile-major (neighbouring
    work-items share a tile list), p = y * width + x; returns 0 for padding rays outside the image.
-   full == 0: a pixel subset, p = gid. */
-static inline int ray_row(int gid, int full, int width, int height, int tiles_x, int *p) {
-    if (!full) { *p = gid; return 1; }
+   full == 0: a pixel subset of n_rays rays, p = gid; returns 0 past them. */
+static inline int ray_row(int gid, int full, int n_rays, int width, int height, int tiles_x, int *p) {
+    if (!full) { *p = gid; return gid < n_rays; }
     const int tile = gid / (TILE * TILE), in_tile = gid % (TILE * TILE);
     const int x = (tile % tiles_x) * TILE + in_tile % TILE, y = (tile / tiles_x) * TILE + in_tile / TILE;
     *p = y * width + x;
@@ -110,9 +110,10 @@ static inline lanef block_alpha(float8 s, lanef px, lanef py) {
     return select(a, (lanef)(0.f), (sig < 0.f) | (a < ALPHA_MIN));
 }
 
-/* The V-Render walk of a block: for each Gaussian g (splat s) of the list, in depth order, that
-   some lane blends, runs the statements ... with lanei use (-1 in the lanes that blend it) and lanef w
-   (w_i = T_i alpha'_i there, 0 elsewhere), then advances T. A lane stops before the Gaussian that
+/* The V-Render walk of a block: for each Gaussian g (splat s, list position i_) of the list, in
+   depth order, that some lane blends, runs the statements ... with lanei use (-1 in the lanes that
+   blend it), lanef a (alpha'), w (w_i = T_i alpha'_i where used, 0 elsewhere) and next_T
+   (T (1 - alpha')), then advances T. A lane stops before the Gaussian that
    would bring its T to <= T_MIN; lanes with row < 0 never start. Declares T (lanef), the lanes'
    transmittance after the walk, in the enclosing scope. */
 #define VOLUME_WALK(range, px, py, row, ...) \
@@ -122,15 +123,15 @@ static inline lanef block_alpha(float8 s, lanef px, lanef py) {
         for (int i_ = range.x; i_ < range.y && !all(done_); i_++) { \
             const int g = ids[i_]; \
             const float8 s = splats[g]; \
-            const lanef a_ = block_alpha(s, px, py); \
-            lanei use = (a_ > 0.f) & ~done_; \
+            const lanef a = block_alpha(s, px, py); \
+            lanei use = (a > 0.f) & ~done_; \
             if (!any(use)) continue; \
-            const lanef next_T = T * (1.f - a_); \
+            const lanef next_T = T * (1.f - a); \
             const lanei stop_ = use & (next_T <= T_MIN); \
             done_ |= stop_; \
             use &= ~stop_; \
             if (!any(use)) continue; \
-            const lanef w = select((lanef)(0.f), a_ * T, use); \
+            const lanef w = select((lanef)(0.f), a * T, use); \
             __VA_ARGS__; \
             T = select(T, next_T, use); \
         } \

@@ -1,6 +1,18 @@
 /* EWA projection: one work-item per Gaussian (3DGS conventions, 0.3 px low-pass). */
 #include "common.h"
 
+/* The largest radius stored in radii (px): a float beyond INT_MAX has no defined int value
+   (INT_MIN on x86, saturated on GPUs), so the radius is clamped in float first. Same bound as
+   RADIUS_MAX in qr_cl/stages/project_ref.py. */
+#define RADIUS_MAX 1073741824.f
+
+/* Tile index of pixel coordinate v clamped to [0, tiles], clamped in float before the
+   conversion (out-of-range conversions are undefined); fmax/fmin map NaN to the bound. Truncates
+   toward zero like the (int) conversion it replaces. */
+static inline int tile_index(float v, int tiles) {
+    return (int)fmin(fmax(v / TILE, 0.f), (float)tiles);
+}
+
 /* Outputs per Gaussian: splat = (mean2d.x, mean2d.y, conic a, b, c, opacity, depth, 0),
    radius in pixels (0 = culled), tile rectangle [x0, y0, x1, y1) and tiles touched. */
 __kernel void project(const int n,
@@ -63,18 +75,22 @@ __kernel void project(const int n,
 
     /* Radius from the largest eigenvalue, then the [x0, x1) x [y0, y1) tile rectangle. */
     float mid = 0.5f * (c00 + c11);
-    float lambda1 = mid + sqrt(max(0.1f, mid * mid - det));
+    /* mid * mid - det (3DGS's discriminant) overflows in float32 for 2D variances above ~1e19 px^2:
+       then the same root, ((c00 - c11) / 2)^2 + c01^2, without squaring mid (so the radius stays
+       finite, as in the float64 twin). fmax, not max: max is undefined for infinite arguments. */
+    float disc = mid * mid - det;
+    float lambda1 = mid + (isfinite(disc) ? sqrt(fmax(0.1f, disc)) : hypot(0.5f * (c00 - c11), c01));
     float radius = ceil(3.f * sqrt(lambda1));
     float2 mean2d = (float2)(fx * p.x / p.z + cx, fy * p.y / p.z + cy);
-    int4 rect = (int4)(min(tiles_x, max(0, (int)((mean2d.x - radius) / TILE))),
-                       min(tiles_y, max(0, (int)((mean2d.y - radius) / TILE))),
-                       min(tiles_x, max(0, (int)((mean2d.x + radius + TILE - 1) / TILE))),
-                       min(tiles_y, max(0, (int)((mean2d.y + radius + TILE - 1) / TILE))));
+    if (!(isfinite(mean2d.x) && isfinite(mean2d.y))) return;   /* projects beyond FLT_MAX px */
+    int4 rect = (int4)(tile_index(mean2d.x - radius, tiles_x), tile_index(mean2d.y - radius, tiles_y),
+                       tile_index(mean2d.x + radius + TILE - 1, tiles_x),
+                       tile_index(mean2d.y + radius + TILE - 1, tiles_y));
     int touched = (rect.z - rect.x) * (rect.w - rect.y);
     if (touched <= 0) return;
 
     splats[i] = (float8)(mean2d.x, mean2d.y, c11 * inv, -c01 * inv, c00 * inv, opacities[i], p.z, 0.f);
-    radii[i] = (int)radius;
+    radii[i] = (int)fmin(radius, RADIUS_MAX);
     rects[i] = rect;
     tiles_touched[i] = touched;
 }

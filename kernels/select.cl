@@ -61,6 +61,95 @@ __kernel void select_quantile(BLOCK_ARGS, const int K, __global int *out_ids, __
     }
 }
 
+/* Inverse of the standard normal CDF (Acklam's rational approximation; |Phi(x) - p| < 1e-4 p in
+   the tails, < 1e-8 p in [0.02425, 0.97575]), clamped to [-8, 8]. */
+static inline float normal_quantile(float p) {
+    if (p <= 0.f) return -8.f;
+    if (p >= 1.f) return 8.f;
+    const float lo = 0.02425f;
+    float x;
+    if (p < lo || p > 1.f - lo) {
+        const float q = sqrt(-2.f * log(p < lo ? p : 1.f - p));
+        x = (((((-7.784894002430293e-03f * q - 3.223964580411365e-01f) * q - 2.400758277161838e+00f) * q
+               - 2.549671010243101e+00f) * q + 4.374664141464968e+00f) * q + 2.938163982698783e+00f)
+            / ((((7.784695709041462e-03f * q + 3.224671290700398e-01f) * q + 2.445134137142996e+00f) * q
+                + 3.754408661907416e+00f) * q + 1.f);
+        x = p < lo ? x : -x;
+    } else {
+        const float q = p - 0.5f, r = q * q;
+        x = (((((-3.969683028665376e+01f * r + 2.209460984245205e+02f) * r - 2.759285104469687e+02f) * r
+               + 1.383577518672690e+02f) * r - 3.066479806614716e+01f) * r + 2.506628277459239e+00f) * q
+            / (((((-5.447609879822406e+01f * r + 1.615858368580409e+02f) * r - 1.556989798598866e+02f) * r
+                 + 6.680131188771972e+01f) * r - 1.328068155288572e+01f) * r + 1.f);
+    }
+    return clamp(x, -8.f, 8.f);
+}
+
+/* Standard normal CDF. */
+static inline float normal_cdf(float x) { return 0.5f * (1.f + erf(x * 0.70710678118654752f)); }
+
+/* The (k+1)-th of Stratified-K's K transmittance boundaries of a ray whose V-Render walk ended at
+   T_end with transmittance mean mu and deviation sigma: the quantile (k+1)/(K+1), counted from
+   T = 1 down, of the normal N(mu, sigma^2) cut to [T_end, 1] (uniform in [T_end, 1] when sigma is
+   0); -1 (never crossed) for k >= K. */
+static inline float stratified_boundary(int k, int K, float mu, float sigma, float T_end) {
+    if (k >= K) return -1.f;
+    const float f = (float)(k + 1) / (float)(K + 1);
+    if (!(sigma > 0.f)) return 1.f - f * (1.f - T_end);
+    const float p_hi = normal_cdf((1.f - mu) / sigma), p_lo = normal_cdf((T_end - mu) / sigma);
+    return mu + sigma * normal_quantile(p_hi - f * (p_hi - p_lo));
+}
+
+/* Stratified-K selection (the paper's App. E): a first V-Render walk measures the mean and
+   standard deviation of the transmittance along the ray (the T after each blended Gaussian); a
+   second walk is Algorithm 1 with the K boundaries placed uniformly in probability under the
+   normal fitted to them (denser where the transmittance values cluster) instead of uniformly in
+   T. Weights and normalization as Q-Render. */
+__kernel void select_stratified(BLOCK_ARGS, const int K, __global int *out_ids, __global float *out_w,
+                                __global int *count, __global float *t_walk,
+                                __global float *t_sel, __global float *t_rem) {
+    lanef px, py;
+    lanei row;
+    const int2 range = block_rays(get_global_id(0), full, ranges, pixels, order, blocks, width, height,
+                                  tiles_x, &px, &py, &row);
+    lanef sum = (lanef)(0.f), sum_sq = (lanef)(0.f), used = (lanef)(0.f), t_end;
+    {                                                 /* pass 1: the transmittance statistics */
+        VOLUME_WALK(range, px, py, row,
+            sum += select((lanef)(0.f), next_T, use);
+            sum_sq += select((lanef)(0.f), next_T * next_T, use);
+            used += select((lanef)(0.f), (lanef)(1.f), use))
+        t_end = T;
+    }
+    const lanef mu = sum / fmax(used, 1.f);
+    const lanef sigma = sqrt(fmax(sum_sq / fmax(used, 1.f) - mu * mu, 0.f));
+    lanef TQ = (lanef)(1.f), bound;
+    lanei k = (lanei)(0), n = (lanei)(0);
+    for (int l = 0; l < TILE; l++)
+        LANE(bound, l) = stratified_boundary(0, K, LANE(mu, l), LANE(sigma, l), LANE(t_end, l));
+    VOLUME_WALK(range, px, py, row,                  /* pass 2: Algorithm 1, stratified boundaries */
+        const lanef T_test = next_T;
+        const lanei cross = use & (T_test < bound);
+        if (any(cross))
+            for (int l = 0; l < TILE; l++) {
+                if (!LANE_I(cross, l)) continue;
+                const size_t slot = (size_t)LANE_I(row, l) * K + LANE_I(n, l)++;
+                out_ids[slot] = g;
+                out_w[slot] = LANE(TQ, l) * LANE(a, l);
+                LANE(TQ, l) *= 1.f - LANE(a, l);
+                int kl = LANE_I(k, l) + 1;
+                const float mu_l = LANE(mu, l), sigma_l = LANE(sigma, l), end_l = LANE(t_end, l);
+                while (LANE(T_test, l) < stratified_boundary(kl, K, mu_l, sigma_l, end_l)) kl++;
+                LANE_I(k, l) = kl;
+                LANE(bound, l) = stratified_boundary(kl, K, mu_l, sigma_l, end_l);
+            })
+    for (int l = 0; l < TILE; l++) {
+        const int p = LANE_I(row, l), nl = LANE_I(n, l);
+        if (p < 0) continue;
+        normalize_weights(out_w + (size_t)p * K, nl);
+        count[p] = nl; t_walk[p] = LANE(T, l); t_sel[p] = LANE(TQ, l); t_rem[p] = nl ? 0.f : 1.f;
+    }
+}
+
 /* Min-heap order of (weight, list position): the smaller weight, or on a tie the later
    position (so the K largest weights are kept, earlier depth first on ties). */
 static inline int heap_less(float wa, int pa, float wb, int pb) { return wa < wb || (wa == wb && pa > pb); }

@@ -31,3 +31,38 @@ __kernel void transpose_fill(const int n_rays, const int rays_per, const int n_c
             t_w[slot] = sel_w[j];
         }
 }
+
+/* ---- GPU-shaped transpose: one work-item per ray or entry, a device sort in between ----
+   The entries are numbered c in CSR order (ray, then position in the ray), sorted by the key
+   (Gaussian id << 32 | c): within a Gaussian they keep the order ray, then position, as in the
+   counting sort above, so both give identical bytes. */
+
+/* Keys of ray p's entries, numbered from compact[p] (exclusive scan of count): the sort key,
+   the entry's number (the sorted value), its ray and its weight. */
+__kernel void transpose_keys(const int n_rays, __global const int *offsets, __global const int *count,
+                             __global const int *compact, __global const int *sel_ids,
+                             __global const float *sel_w, __global ulong *keys, __global int *values,
+                             __global int *entry_ray, __global float *entry_w) {
+    const int p = get_global_id(0);
+    if (p >= n_rays) return;
+    for (int j = 0; j < count[p]; j++) {
+        const int c = compact[p] + j, e = offsets[p] + j;
+        keys[c] = ((ulong)(uint)sel_ids[e] << 32) | (uint)c;
+        values[c] = c;
+        entry_ray[c] = p;
+        entry_w[c] = sel_w[e];
+    }
+}
+
+/* After the sort: the transposed ray and weight of sorted entry i, and ends[g] = i + 1 at the
+   last entry of Gaussian g's segment (0 elsewhere; a max-scan then fills the cursor). */
+__kernel void transpose_gather(const int n, __global const ulong *keys, __global const int *values,
+                               __global const int *entry_ray, __global const float *entry_w,
+                               __global int *t_ray, __global float *t_w, __global int *ends) {
+    const int i = get_global_id(0);
+    if (i >= n) return;
+    t_ray[i] = entry_ray[values[i]];
+    t_w[i] = entry_w[values[i]];
+    const uint g = (uint)(keys[i] >> 32);
+    if (i == n - 1 || (uint)(keys[i + 1] >> 32) != g) ends[g] = i + 1;
+}

@@ -22,7 +22,7 @@ def torch_reference(h: dict, features: torch.Tensor, background=None) -> torch.T
     return image
 
 
-@pytest.mark.parametrize("sampler,k", [("quantile", 5), ("topk", 5), ("volume", 1)])
+@pytest.mark.parametrize("sampler,k", [("quantile", 5), ("topk", 5), ("volume", 1), ("stratified", 5)])
 @pytest.mark.parametrize("with_pixels", [False, True])
 def test_gradients_equal_reference(random_scene, sampler, k, with_pixels):
     m, q, s, o, v, K, w, h = random_scene

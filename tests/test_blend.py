@@ -31,7 +31,8 @@ def device_rows(plan, array: np.ndarray) -> cla.Array:
     return cla.to_device(plan.runtime.queue, padded_rows(array, channel_layout(array.shape[1])[2]))
 
 
-@pytest.mark.parametrize("sampler,k", [("quantile", 1), ("quantile", 10), ("topk", 10), ("volume", 1)])
+@pytest.mark.parametrize("sampler,k", [("quantile", 1), ("quantile", 10), ("topk", 10), ("volume", 1),
+                                      ("stratified", 10)])
 @pytest.mark.parametrize("channels", [1, 2, 37, 512, 2048])
 def test_forward_and_backward_equal_reference(plan, sampler, k, channels):
     rng = np.random.default_rng(channels)

@@ -1,6 +1,8 @@
 """Selection kernels (select.cl) against the numpy references of Algorithm 1, top-K and V-Render."""
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -43,12 +45,13 @@ def compare(plan, sel: Selection, pixels: np.ndarray, sampler: str, k: int) -> i
     if sampler != "volume":
         assert got["count"].max(initial=0) <= k
         np.testing.assert_allclose(got["weights"].sum(1)[got["count"] > 0], 1, rtol=1e-5)
-    if sampler == "quantile":   # a differing ray must have a transmittance at a boundary
+    margin = {"quantile": select_ref.quantile_margin, "stratified": select_ref.stratified_margin}
+    if sampler in margin:       # a differing ray must have a transmittance at a boundary
         tiles_x = plan.tiles_x
         for x, y in pixels[~same]:
             start, end = meta["tile_ranges"][(y // TILE) * tiles_x + x // TILE]
             ids = plan.ids.get()[start:end]
-            assert select_ref.quantile_margin(select_ref.alphas(meta, ids, np.array([[x, y]]))[0], k) < 1e-5
+            assert margin[sampler](select_ref.alphas(meta, ids, np.array([[x, y]]))[0], k) < 1e-5
     return int((~same).sum())
 
 
@@ -58,7 +61,8 @@ def random_plan(random_scene):
 
 
 CASES = [("volume", 0), ("quantile", 1), ("quantile", 4), ("quantile", 10), ("quantile", 1000),
-         ("topk", 1), ("topk", 10), ("topk", 1000)]
+         ("topk", 1), ("topk", 10), ("topk", 1000), ("stratified", 1), ("stratified", 4),
+         ("stratified", 10), ("stratified", 1000)]
 
 
 @pytest.mark.parametrize("sampler,k", CASES)
@@ -80,7 +84,7 @@ def test_kernel_equals_reference_real(request, scene):
     plan = rasterize_plan(g.means, g.quats, g.scales, g.opacities, cam.viewmat, cam.K, cam.width, cam.height)
     pixels = np.random.default_rng(1).integers(0, [cam.width, cam.height], (600, 2))
     report = {}
-    for sampler, k in [("volume", 0), ("quantile", 10), ("quantile", 40), ("topk", 10)]:
+    for sampler, k in [("volume", 0), ("quantile", 10), ("quantile", 40), ("topk", 10), ("stratified", 10)]:
         sel = select(plan, sampler, k or 1, pixels)
         assert sel.count.get().max() > 0, "the camera sees nothing"
         report[f"{sampler}{k or ''}"] = compare(plan, sel, pixels, sampler, k)
@@ -92,7 +96,7 @@ def test_pixel_subset_equals_full_image_rows(random_plan):
     rng = np.random.default_rng(2)
     pixels = rng.integers(0, [random_plan.width, random_plan.height], (257, 2))
     rows = pixels[:, 1] * random_plan.width + pixels[:, 0]
-    for sampler, k in [("quantile", 7), ("topk", 5), ("volume", 1)]:
+    for sampler, k in [("quantile", 7), ("topk", 5), ("volume", 1), ("stratified", 6)]:
         full, sub = select(random_plan, sampler, k).host(), select(random_plan, sampler, k, pixels).host()
         for name in ("count", "t_walk", "t_sel", "t_rem"):
             np.testing.assert_array_equal(sub[name], full[name][rows])
@@ -199,3 +203,19 @@ def test_quantile_converges_to_volume(fox):
     print("mean |Q - V| (fox RGB):", {k: f"{e:.5f}" for k, e in errors.items()})
     assert errors[1000] < errors[40] < errors[5]
     assert errors[1000] < 0.01
+
+
+def test_stratified_boundaries_follow_the_fitted_normal():
+    """Stratified-K's boundaries are the quantiles of N(mu, sigma) cut to [T_end, 1]: denser around
+    the mean than Q-Render's uniform ones, uniform when sigma is 0, never crossed past K."""
+    K, mu, sigma, t_end = 9, 0.5, 0.1, 0.05
+    b = np.array([select_ref.stratified_boundary(k, K, mu, sigma, t_end) for k in range(K)])
+    assert (np.diff(b) < 0).all() and 1 > b[0] and b[-1] > t_end
+    steps = -np.diff(b)
+    assert steps[K // 2 - 1] < steps[0] and steps[K // 2 - 1] < steps[-1]      # dense at the mean
+    cdf = lambda x: 0.5 * (1 + math.erf((x - mu) / sigma / math.sqrt(2)))
+    mass = np.array([cdf(1.0)] + [cdf(x) for x in b] + [cdf(t_end)])
+    np.testing.assert_allclose(-np.diff(mass), (mass[0] - mass[-1]) / (K + 1), rtol=1e-4)   # equal mass
+    np.testing.assert_allclose([select_ref.stratified_boundary(k, 3, 0.7, 0.0, 0.2) for k in range(3)],
+                               [0.8, 0.6, 0.4], rtol=1e-6)
+    assert select_ref.stratified_boundary(K, K, mu, sigma, t_end) == -1

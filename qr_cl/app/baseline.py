@@ -13,7 +13,7 @@ import torch.nn.functional as F
 from tqdm import tqdm
 
 from .data import SceneData
-from .loss import RaySettings, scene_loss
+from .loss import RaySettings, ViewSelections, rays_loss, step_rays
 
 
 class BaselineSettings(RaySettings, Protocol):
@@ -23,17 +23,29 @@ class BaselineSettings(RaySettings, Protocol):
     seed: int
 
 
-def fit_free_features(scene: SceneData, cfg: BaselineSettings, lr: float = 0.05, progress: bool = True) -> np.ndarray:
+def fit_free_features(scene: SceneData, cfg: BaselineSettings, lr: float = 0.05, progress: bool = True,
+                      views: ViewSelections | None = None) -> np.ndarray:
     """Optimize free features of ``scene`` for ``cfg.steps`` steps (Adam at ``lr``; views, rays,
-    sampler, K and temperature from ``cfg``). Returns unit features [N,C] float32."""
+    sampler, K and temperature from ``cfg``). Returns unit features [N,C] float32.
+
+    A step renders from the rows its rays select (normalized there); their gradient is written
+    into the table's persistent gradient (zero elsewhere) and a fused Adam updates the whole table
+    in place, so no [N,C] array is allocated per step. ``views`` keeps the views' whole-image
+    selections (default: 1 GiB of them)."""
     gen = torch.Generator().manual_seed(cfg.seed)
     table = torch.nn.Parameter(torch.randn(len(scene.gaussians), scene.feature_dim, generator=gen))
-    opt = torch.optim.Adam([table], lr=lr)
+    table.grad = torch.zeros_like(table)
+    opt = torch.optim.Adam([table], lr=lr, fused=True)
+    views = ViewSelections(1 << 30) if views is None else views
     bar = tqdm(range(cfg.steps), desc=f"baseline {scene.name}", unit="step", disable=not progress)
     for step in bar:
-        opt.zero_grad()
-        loss, _ = scene_loss(scene, F.normalize(table, dim=1), cfg, np.random.default_rng([cfg.seed, step, 0]))
+        rays = step_rays(scene, cfg, np.random.default_rng([cfg.seed, step, 0]), views)
+        rows = torch.from_numpy(rays.rows)
+        used = table.detach().index_select(0, rows).requires_grad_()
+        loss = rays_loss(rays, F.normalize(used, dim=1), cfg.temperature)
         loss.backward()
+        table.grad.zero_()
+        table.grad.index_copy_(0, rows, used.grad)
         opt.step()
         bar.set_postfix(loss=f"{loss.detach().item():.3f}")
     return F.normalize(table.detach(), dim=1).numpy()

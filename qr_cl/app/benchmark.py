@@ -14,6 +14,7 @@ import json
 import math
 import os
 import platform
+import resource
 import time
 import warnings
 from dataclasses import dataclass
@@ -197,16 +198,18 @@ class Sweep:
 
     def end_to_end(self, scene: BenchScene, sampler: str, k: int, channels: int) -> dict:
         """Time the public call (projection to image) for one sampler: ``rasterize``, or
-        ``render_volume_fused`` for sampler "volume_fused"."""
+        ``render_volume_fused`` for sampler "volume_fused"; and count the minor page faults of a
+        warm call (``faults_per_call``, 0 when nothing is freshly allocated)."""
         g, cam = scene.gaussians, scene.camera
         feats = np.random.default_rng(0).random((len(g), channels), dtype=np.float32)
         args = (g.means, g.quats, g.scales, g.opacities, feats, cam.viewmat, cam.K, cam.width, cam.height)
         if sampler == "volume_fused":
-            timing = measure(lambda: render_volume_fused(*args), self.rounds)
+            call = lambda: render_volume_fused(*args)  # noqa: E731
         else:
-            timing = measure(lambda: rasterize(*args, sampler=sampler, k=k), self.rounds)
+            call = lambda: rasterize(*args, sampler=sampler, k=k)  # noqa: E731
+        timing = measure(call, self.rounds)
         return self._row(scene, "end-to-end", sampler, k if sampler in ("quantile", "topk") else 0,
-                         channels, timing)
+                         channels, timing, faults_per_call=warm_page_faults(call))
 
     def torch_baselines(self, scene: BenchScene, plan, k: int, channels: int, numpy_rounds: int) -> None:
         """The same blend (Q-Render's selection) with torch embedding_bag and with numpy."""
@@ -252,6 +255,16 @@ class Sweep:
         limit = max(flops / self.limits["fma_flops"], min_bytes / self.limits["bandwidth_bytes_s"])
         return {"bare_gather_s": self._bare[key], "fraction_of_bare_gather": self._bare[key] / seconds,
                 "fraction_of_roofline": limit / seconds}
+
+
+def warm_page_faults(call, calls: int = 2) -> float:
+    """Minor page faults (``ru_minflt``) per call of ``call()`` after a warm-up call: what fresh
+    allocations cost a warm call (glibc maps allocations above 32 MB freshly each time)."""
+    call()
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    for _ in range(calls):
+        call()
+    return (resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before) / calls
 
 
 # ----------------------------------------------------------------------------------------------
@@ -380,6 +393,14 @@ def _ms(row: dict | None) -> str:
     return "-" if row is None else f"{row['min_s'] * 1e3:.1f}"
 
 
+def _fault_count(row: dict | None) -> str:
+    return "-" if row is None or "faults_per_call" not in row else f"{row['faults_per_call']:.0f}"
+
+
+def _faults(row: dict) -> str:
+    return "" if "faults_per_call" not in row else f" ({row['faults_per_call']:.0f} page faults per warm call)"
+
+
 def summary_markdown(report: dict) -> str:
     """The markdown summary: headline ratios, the per-stage table, limits and complexity fits."""
     rows, meta, lim = report["results"], report["meta"], report["limits"]
@@ -403,7 +424,7 @@ def summary_markdown(report: dict) -> str:
                      ("numpy blend (same selection)", _find(rows, sampler="numpy", **sc))]
         lines += [f"## Q-Render (K={k}, C={c}) on {head['scene']} at {head['width']}x{head['height']}", "",
                   f"Q-Render selection + blend: {q * 1e3:.1f} ms (selection {_ms(q_sel)}, blend {_ms(q_fwd)}); "
-                  f"end to end (projection to image): {_ms(head)} ms. Blend at "
+                  f"end to end (projection to image): {_ms(head)} ms{_faults(head)}. Blend at "
                   f"{q_fwd['fraction_of_roofline']:.0%} of the roofline and "
                   f"{q_fwd['fraction_of_bare_gather']:.0%} of the bare coherent gather-blend.", "",
                   "| baseline | ms | baseline / Q-Render |", "| --- | --- | --- |"]
@@ -414,8 +435,8 @@ def summary_markdown(report: dict) -> str:
         lines += ["", "(blend-only baselines are compared with Q-Render's blend; the others with "
                   "Q-Render's selection + blend)", ""]
     lines += ["## Per stage", "", "| scene | WxH | sampler | K | C | selection | blend fwd | blend bwd | "
-              "fused | end-to-end | blend fwd / roofline | mean entries | peak host MB |",
-              "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+              "fused | end-to-end | end-to-end page faults | blend fwd / roofline | mean entries | peak host MB |",
+              "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in rows:
         if r["stage"] != "blend-forward" or r["sampler"] not in SAMPLERS:
             continue
@@ -428,6 +449,7 @@ def summary_markdown(report: dict) -> str:
         peak = max(x.get("peak_host_bytes", 0) for x in (r, bwd or r)) / 2 ** 20
         lines.append(f"| {r['scene']} | {r['width']}x{r['height']} | {r['sampler']} | {r['k'] or '-'} | "
                      f"{r['channels']} | {_ms(sel)} | {_ms(r)} | {_ms(bwd)} | {_ms(fused)} | {_ms(e2e)} | "
+                     f"{_fault_count(e2e)} | "
                      f"{r['fraction_of_roofline']:.0%} | {r['mean_entries']:.1f} | {peak:.0f} |")
     comp = report["complexity"]
     lines += ["", f"## Complexity (layered scenes, {comp['width']}x{comp['height']}, K={comp['k']})", "",

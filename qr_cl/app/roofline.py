@@ -56,7 +56,7 @@ def bare_gather_blend(rt: Runtime, rays: int, k: int, channels: int, n_rows: int
     def run():
         rt.launch("blend", (rays, cstride // (vw * nv)), defines={"VW": vw, "NV": nv},
                   offsets=offsets, count=count, sel_ids=ids, sel_w=weights, features=features,
-                  cstride=cstride, full=0, width=0, height=0, tiles_x=1, background=unused,
+                  cstride=cstride, full=0, n_rays=rays, width=0, height=0, tiles_x=1, background=unused,
                   t_rem=unused, use_bg=0, image=image)
         rt.queue.finish()
     return measure(run, rounds)["min_s"]

@@ -33,7 +33,7 @@ from tqdm import tqdm
 
 from ..runtime import SAMPLERS
 from .data import SceneData, load_scene_folder
-from .loss import scene_loss
+from .loss import ViewSelections, rays_loss, step_rays
 from .model import NETS, build_net, torch_threads
 
 @dataclass
@@ -57,6 +57,7 @@ class TrainConfig:
     plateau_interval: int = 25
     patience: int = 2
     level: int = 0
+    view_selections_mb: int = 1024
     feature_dim: int = field(default=0)
 
     def __post_init__(self) -> None:
@@ -97,6 +98,8 @@ class Trainer:
         torch.manual_seed(cfg.seed)
         self.net = build_net(cfg.net, cfg.feature_dim, cfg.grid_size)
         self.batches: dict[int, object] = {}
+        self.views = ViewSelections(cfg.view_selections_mb << 20)
+        self.touched: list[float] = []
         self.opt = torch.optim.Adam(self.net.parameters(), lr=cfg.lr)
         self.sched = torch.optim.lr_scheduler.ReduceLROnPlateau(self.opt, factor=0.1, patience=cfg.patience)
         self.step = 0
@@ -118,11 +121,13 @@ class Trainer:
         total, rays = torch.zeros(()), 0
         for slot in range(self.rank, len(slots), self.world):
             scene = slots[slot]
-            features = self.net(self.batch(scene))
-            loss, n = scene_loss(self.scenes[scene], features, cfg, np.random.default_rng([cfg.seed, self.step, slot]))
+            step = step_rays(self.scenes[scene], cfg, np.random.default_rng([cfg.seed, self.step, slot]), self.views)
+            table = self.net(self.batch(scene), torch.from_numpy(step.rows))
+            loss = rays_loss(step, table, cfg.temperature)
             (loss / cfg.batch_scenes).backward()
             total += loss.detach() / cfg.batch_scenes
-            rays += n
+            rays += step.n_rays
+            self.touched.append(step.touched)
         if self.world > 1:
             for p in self.net.parameters():
                 dist.all_reduce(p.grad)
@@ -147,7 +152,8 @@ class Trainer:
         """Continue from a checkpoint of the same configuration (steps may differ)."""
         saved = dict(ckpt["config"])
         mine = asdict(self.cfg)
-        diff = [k for k in mine if k not in ("steps", "out", "checkpoint_every") and saved.get(k) != mine[k]]
+        free = ("steps", "out", "checkpoint_every", "view_selections_mb")   # do not change the results
+        diff = [k for k in mine if k not in free and saved.get(k) != mine[k]]
         if diff:
             raise ValueError("--resume: the checkpoint was trained with different settings: " +
                              ", ".join(f"{k}={saved.get(k)!r} (now {mine[k]!r})" for k in diff))

@@ -5,27 +5,36 @@ no gradient flows to means, quats, scales or opacities.
 """
 from __future__ import annotations
 
-import numpy as np
-import pyopencl.array as cla
 import torch
 
-from ..runtime import channel_layout, check_buffer, check_channels, padded_rows
+from ..runtime import channel_layout, check_channels, device_rows, host_empty, shared_array
 from ..stages.blend import blend_backward, blend_forward
 from ..stages.select import Selection
 
 
-def _rows(rt, tensor: torch.Tensor, cstride: int) -> cla.Array:
-    """A device copy of a [R, C] tensor as float32 rows of cstride floats."""
-    check_buffer(rt, 4 * tensor.shape[0] * cstride, f"{tensor.shape[0]} rows x {cstride} channels")
-    return cla.to_device(rt.queue, padded_rows(tensor.detach().cpu().numpy(), cstride))
+def _host_rows(tensor: torch.Tensor):
+    """A numpy view of a [R, C] tensor's rows (float32 on the CPU; converted only otherwise)."""
+    return tensor.detach().to("cpu", torch.float32).numpy()
+
+
+def _output(rows: int, channels: int, cstride: int):
+    """A pooled host array [rows, cstride] the kernels write into, and the [rows, channels]
+    tensor over it that the caller receives (a strided view when channels < cstride)."""
+    host = host_empty((rows, cstride))
+    return host, torch.from_numpy(host if cstride == channels else host[:, :channels])
 
 
 class BlendFunction(torch.autograd.Function):
     """image [P,C] = blend(selection, features [N,C]) (+ t_rem * background [C]).
 
-    forward copies features into a device buffer, runs blend.cl and copies the image back;
-    backward copies dImage in and runs the deterministic transposed gather for dF. The
-    background gets its gradient sum_p t_rem[p] dImage[p]. The selection gets none.
+    No copies where the memory allows it: forward reads the features in place (float32,
+    C-contiguous, C == cstride; else padded once into a pooled host array) and writes the image
+    straight into the memory of the tensor it returns (a pooled host array that no earlier
+    output still uses; [P, cstride] with a [P, C] view returned when C < cstride); backward
+    likewise reads dImage in place and writes dF straight into the returned gradient. On devices
+    that do not share host memory the same calls copy through pooled device buffers. The
+    backward is the deterministic transposed gather; the background gets its gradient
+    sum_p t_rem[p] dImage[p]. The selection gets none.
     """
 
     @staticmethod
@@ -34,10 +43,11 @@ class BlendFunction(torch.autograd.Function):
         channels = features.shape[1]
         cstride = channel_layout(channels)[2]
         bg = None if background is None else background.detach().cpu().numpy()
-        image = blend_forward(selection, _rows(rt, features, cstride), channels, bg)
+        host, image = _output(selection.n_rays, channels, cstride)
+        with device_rows(rt, _host_rows(features), cstride) as rows, shared_array(rt, host, "w") as out:
+            blend_forward(selection, rows, channels, bg, out=out)
         ctx.selection, ctx.channels = selection, channels
-        out = image.get()[:, :channels]
-        return torch.from_numpy(np.ascontiguousarray(out)).to(features.dtype)
+        return image.to(features.dtype)
 
     @staticmethod
     def backward(ctx, grad_image: torch.Tensor):
@@ -46,8 +56,10 @@ class BlendFunction(torch.autograd.Function):
         cstride = channel_layout(channels)[2]
         d_features = d_background = None
         if ctx.needs_input_grad[0]:
-            d = blend_backward(sel, _rows(rt, grad_image, cstride), channels).get()[:, :channels]
-            d_features = torch.from_numpy(np.ascontiguousarray(d)).to(grad_image.dtype)
+            host, d = _output(sel.n_gaussians, channels, cstride)
+            with device_rows(rt, _host_rows(grad_image), cstride) as dimage, shared_array(rt, host, "w") as out:
+                blend_backward(sel, dimage, channels, out=out)
+            d_features = d.to(grad_image.dtype)
         if ctx.needs_input_grad[2]:
             t_rem = torch.from_numpy(sel.t_rem.get()[:sel.n_rays]).to(grad_image.dtype)
             d_background = t_rem @ grad_image

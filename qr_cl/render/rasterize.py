@@ -9,8 +9,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..runtime import (BufferLimitError, Runtime, channel_layout, check_buffer, check_channels, padded_rows,
-                       runtime, to_device)
+from ..runtime import (BufferLimitError, Runtime, channel_layout, check_buffer, check_channels, device_rows,
+                       host_empty, runtime, to_device, trim_device_pool)
 from ..stages.binning import RasterPlan, bin_and_sort
 from ..stages.project import project
 from ..stages.select import check_pixels, check_sampler, select
@@ -203,10 +203,11 @@ def rasterize(means, quats, scales, opacities, features, viewmat, K, width: int,
         parts += _render_rays(selection, rays, width, height, scene, groups)
     sels = [sel for sel, _, _ in parts]
     render = torch.cat([r for _, r, _ in parts]) if len(parts) > 1 else parts[0][1]
-    alpha = torch.from_numpy(np.concatenate([a for _, _, a in parts]))
+    alpha = torch.from_numpy(parts[0][2] if len(parts) == 1 else np.concatenate([a for _, _, a in parts]))
     meta = {**sels[0].plan.meta(), "selection": sels[0] if len(sels) == 1 else sels}
     if pixels is None:
         render, alpha = render.reshape(height, width, scene.channels), alpha.reshape(height, width, 1)
+    trim_device_pool(rt)
     return render, alpha, meta
 
 
@@ -226,7 +227,9 @@ def _render_rays(selection, rays: np.ndarray | None, width: int, height: int, sc
     bg = scene.background
     cols = [blend(sel, scene.features[:, g], None if bg is None else bg[g]) for g in groups]
     render = cols[0] if len(cols) == 1 else torch.cat(cols, 1)
-    return [(sel, render, 1 - sel.t_walk.get()[:sel.n_rays, None])]
+    t_walk = sel.t_walk.get(ary=host_empty(sel.t_walk.shape, np.float32))
+    alpha = np.subtract(1, t_walk[:sel.n_rays, None], out=host_empty((sel.n_rays, 1)))
+    return [(sel, render, alpha)]
 
 
 def render_volume_fused(means, quats, scales, opacities, features, viewmat, K, width: int, height: int,
@@ -244,7 +247,12 @@ def render_volume_fused(means, quats, scales, opacities, features, viewmat, K, w
         image, alpha, meta = scene.empty((height, width))
         return image, alpha, {**meta, "depth": alpha.numpy().copy()}
     plan = scene.plan(width, height, near, far)
-    rows = padded_rows(scene.features.detach().cpu().numpy(), channel_layout(scene.channels)[2])
+    cstride = channel_layout(scene.channels)[2]
     bg = None if scene.background is None else scene.background.detach().cpu().numpy()
-    image, alpha, depth = render_fused(plan, to_device(plan.runtime, rows), scene.channels, bg)
+    feats = scene.features.detach().to("cpu", torch.float32).numpy()
+    check_buffer(plan.runtime, 4 * height * width * cstride, f"the fused V-Render image of {width}x{height} "
+                 f"px x {cstride} channels (rasterize(..., sampler='volume') renders it in chunks)")
+    with device_rows(plan.runtime, feats, cstride) as rows:
+        image, alpha, depth = render_fused(plan, rows, scene.channels, bg, out=host_empty((height, width, cstride)))
+    trim_device_pool(plan.runtime)
     return torch.from_numpy(image), torch.from_numpy(alpha), {**plan.meta(), "depth": depth}

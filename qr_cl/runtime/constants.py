@@ -14,7 +14,7 @@ T_MIN = np.float32(1e-4)           # V-Render stops before T would drop to this
 MAX_CHANNELS = 2048                # feature channels a render supports (1..MAX_CHANNELS)
 
 #: Samplers of the selection stage (``qr_cl.stages.select``): which Gaussians a ray blends.
-SAMPLERS = ("volume", "quantile", "topk")
+SAMPLERS = ("volume", "quantile", "topk", "stratified")
 
 #: Real spherical-harmonic basis constants (original 3DGS computeColorFromSH), degrees 0..3.
 SH_C0 = 0.28209479177387814

@@ -17,6 +17,7 @@ from importlib import resources
 import numpy as np
 import pyopencl as cl
 import pyopencl.array as cla
+import pyopencl.tools as cl_tools
 
 from .constants import KERNEL_CONSTANTS
 
@@ -149,6 +150,9 @@ def kernel_files() -> dict[str, str]:
     return files
 
 
+#: Work-group size of GPU-shaped launches (a multiple of every vendor's SIMD width: 32 or 64).
+GROUP_SIZE = 64
+
 #: Element dtype of the OpenCL C scalar types a kernel argument may have (vectors: their base).
 _CL_TYPES = {"char": np.int8, "uchar": np.uint8, "short": np.int16, "ushort": np.uint16,
              "int": np.int32, "uint": np.uint32, "long": np.int64, "ulong": np.uint64,
@@ -198,16 +202,20 @@ class Runtime:
 
     Kernels are called by name with their arguments by name (:meth:`launch`): the argument list
     is the one the kernel declares, read back from the built program, so no call site repeats it.
+    ``pool`` is the device memory pool every per-call device array comes from (see
+    :func:`qr_cl.runtime.device_empty`): buffers freed by one call are reused by the next.
     """
 
     device: cl.Device
     context: cl.Context = field(init=False)
     queue: cl.CommandQueue = field(init=False)
+    pool: cl_tools.MemoryPool = field(init=False, repr=False)
     _programs: dict = field(init=False, default_factory=dict)
 
     def __post_init__(self) -> None:
         self.context = cl.Context([self.device])
         self.queue = cl.CommandQueue(self.context)
+        self.pool = cl_tools.MemoryPool(cl_tools.ImmediateAllocator(self.queue))
 
     @property
     def max_buffer_bytes(self) -> int:
@@ -218,6 +226,30 @@ class Runtime:
     def is_cpu(self) -> bool:
         """True for a CPU device (the host is the device: host-side sorting pays off)."""
         return device_kind(self.device) == "cpu"
+
+    @property
+    def gpu_shaped(self) -> bool:
+        """Launch GPU-shaped work (work-groups of :data:`GROUP_SIZE` over padded global sizes,
+        device sorts, many-work-item transposes) rather than CPU-shaped work (host sorts, a few
+        long work-items). Every device but a CPU one, unless ``QR_CL_LAUNCH`` (``cpu`` or ``gpu``)
+        says otherwise: that is how the GPU shapes are tested on PoCL."""
+        forced = os.environ.get("QR_CL_LAUNCH", "").strip().lower()
+        if forced not in ("", "cpu", "gpu"):
+            raise ValueError(f"QR_CL_LAUNCH={forced!r}: use cpu or gpu")
+        return forced == "gpu" if forced else not self.is_cpu
+
+    @property
+    def host_unified(self) -> bool:
+        """True when kernels can work in host memory directly (CL_DEVICE_HOST_UNIFIED_MEMORY on a
+        CPU or GPU device): host arrays are then wrapped in USE_HOST_PTR buffers instead of copied
+        (:func:`qr_cl.runtime.shared_array`). False for devices that report several types (a
+        simulator such as oclgrind), which get the buffer-copying path."""
+        if device_kind(self.device) == "other":
+            return False
+        try:
+            return bool(self.device.host_unified_memory)
+        except cl.Error:
+            return self.is_cpu
 
     def kernel(self, name: str, **defines: int | float) -> tuple[cl.Kernel, tuple[KernelArg, ...]]:
         """The kernel ``name`` built with ``-D KEY=VALUE`` per define (and the shared constants),
@@ -238,7 +270,10 @@ class Runtime:
         """Enqueue kernel ``name`` over ``global_size`` work-items with its arguments by name.
 
         Device arrays are checked against the declared element type, scalars converted to it;
-        a missing or unknown argument raises TypeError naming the kernel.
+        a missing or unknown argument raises TypeError naming the kernel. Without ``local_size``
+        a GPU-shaped runtime (:attr:`gpu_shaped`) runs work-groups of GROUP_SIZE over the first
+        dimension padded up to a multiple of it (every kernel returns early past its own count);
+        a CPU-shaped one leaves the grouping to the driver.
         """
         kernel, declared = self.kernel(name, **(defines or {}))
         names = [a.name for a in declared]
@@ -246,6 +281,9 @@ class Runtime:
         if missing or unknown:
             raise TypeError(f"kernel {name}({', '.join(names)}): missing {missing}, unknown {unknown}")
         size = (global_size,) if isinstance(global_size, int) else tuple(global_size)
+        if local_size is None and self.gpu_shaped:
+            local_size = (GROUP_SIZE,) + (1,) * (len(size) - 1)
+            size = (-(-size[0] // GROUP_SIZE) * GROUP_SIZE,) + size[1:]
         kernel(self.queue, size, local_size, *(a.value(name, args[a.name]) for a in declared))
 
 

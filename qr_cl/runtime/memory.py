@@ -1,13 +1,45 @@
-"""Device memory shared by every stage: feature-row layout, host<->device copies, zero-copy
-outputs, and the one exclusive scan.
+"""Device and host memory shared by every stage: feature-row layout, pooled device arrays,
+zero-copy host<->device sharing, the host pool of large outputs, and the one exclusive scan.
 
 Features and images live on the device as rows of ``cstride`` floats (see
 :func:`channel_layout`); the first ``channels`` floats of a row are meaningful.
+
+Allocation-free calls. Every array a stage allocates per call comes from pools, so a warm call
+allocates (and page-faults) nothing:
+
+* device arrays: :func:`device_empty`, :func:`device_zeros`, :func:`to_device` (and anything
+  pyopencl derives from their arrays: ``cla.empty_like``, slices, scans, sums use the array's
+  allocator) come from ``rt.pool``, a per-Runtime ``pyopencl.tools.MemoryPool``. A buffer goes
+  back to the pool when its array is garbage collected; the in-order queue orders its next use
+  after every command enqueued on the old one. :func:`trim_device_pool` bounds what it holds.
+* host memory the kernels read or write: :func:`shared_array` (any C-contiguous array; ``"r"``
+  read-only, ``"w"`` written, ``"rw"``), :func:`device_rows` (feature rows, padded to cstride
+  only when they have to be) and :func:`host_output` (a buffer written into a host array). On a
+  device that shares host memory (``rt.host_unified``: CPU devices) they wrap the host array in a
+  USE_HOST_PTR buffer (no copy); elsewhere they copy through a pooled device array.
+* large host outputs: :func:`host_empty` takes arrays from the process-wide :class:`HostPool`,
+  which reuses one only when nothing outside the pool references it any more (no array, view or
+  torch tensor from ``torch.from_numpy``), so an output never aliases memory a caller holds.
+
+Typical stage code::
+
+    counts = device_empty(rt, n, np.int32)             # instead of cla.empty(rt.queue, n, np.int32)
+    ranges = device_zeros(rt, (tiles, 2), np.int32)     # instead of cla.zeros(...)
+    pix = to_device(rt, pixels, np.int32)               # instead of cla.to_device(rt.queue, ...)
+    image = host_empty((h, w, cstride))                 # instead of np.empty(...) for big outputs
+    with shared_array(rt, image, "w") as image_dev:     # a cla.Array over image's memory
+        rt.launch("kernel", size, image=image_dev, ...)
+    # the kernels' writes are in ``image`` here (queue finished)
 """
 from __future__ import annotations
 
+import math
+import os
+import sys
+import threading
 from contextlib import contextmanager
 from functools import lru_cache
+from typing import Iterator
 
 import numpy as np
 import pyopencl as cl
@@ -70,24 +102,238 @@ def padded_vector(values, channels: int, cstride: int) -> np.ndarray:
     return out
 
 
-def to_device(rt: Runtime, array: np.ndarray, dtype=np.float32) -> cla.Array:
-    """A contiguous device copy of a host array."""
-    return cla.to_device(rt.queue, np.ascontiguousarray(array, dtype=dtype))
+def device_empty(rt: Runtime, shape, dtype=np.float32) -> cla.Array:
+    """An uninitialised device array from ``rt``'s memory pool (reused from earlier calls)."""
+    return cla.empty(rt.queue, shape, dtype, allocator=rt.pool)
+
+
+def device_zeros(rt: Runtime, shape, dtype=np.float32) -> cla.Array:
+    """A zero-filled device array from ``rt``'s memory pool."""
+    return cla.zeros(rt.queue, shape, dtype, allocator=rt.pool)
+
+
+def to_device(rt: Runtime, array, dtype=np.float32) -> cla.Array:
+    """A device copy of a host array (converted to ``dtype``) in a buffer from ``rt``'s pool."""
+    return cla.to_device(rt.queue, np.ascontiguousarray(array, dtype=dtype), allocator=rt.pool)
+
+
+#: Held (free) bytes above which :func:`trim_device_pool` empties the device pool by default.
+DEVICE_POOL_HELD_BYTES = int(os.environ.get("QR_CL_DEVICE_POOL_MB", 1024)) << 20
+
+
+def trim_device_pool(rt: Runtime, max_held_bytes: int | None = None) -> int:
+    """Free the buffers ``rt.pool`` holds for reuse when they exceed ``max_held_bytes``
+    (default ``$QR_CL_DEVICE_POOL_MB`` MiB, 1024): the pool keeps a buffer per size bin it has
+    seen, so renders of varying sizes would otherwise keep their peak. Returns the bytes the pool
+    owns afterwards (in use or held). The renderers call it at the end of each call."""
+    pool = rt.pool
+    limit = DEVICE_POOL_HELD_BYTES if max_held_bytes is None else max_held_bytes
+    if pool.held_blocks and pool.managed_bytes - pool.active_bytes > limit:   # held, ~ (bins round up)
+        pool.free_held()
+    return pool.managed_bytes
+
+
+# ----------------------------------------------------------------------------------------------
+# host memory the kernels use directly
+# ----------------------------------------------------------------------------------------------
+
+_ACCESS = {"r": cl.mem_flags.READ_ONLY, "w": cl.mem_flags.READ_WRITE, "rw": cl.mem_flags.READ_WRITE}
+
+
+@contextmanager
+def shared_array(rt: Runtime, host: np.ndarray, access: str = "rw") -> Iterator[cla.Array]:
+    """``host`` (a C-contiguous numpy array) as a device array of its shape and dtype, for the
+    block; ``access`` says what the kernels do with it: ``"r"`` read, ``"w"`` write (what they
+    read before writing is undefined), ``"rw"`` both.
+
+    On a device sharing host memory (``rt.host_unified``) the device array *is* ``host``'s memory
+    (a USE_HOST_PTR buffer, nothing copied); on leaving the block a written buffer is mapped for
+    reading, the OpenCL way of making the kernels' writes visible to the host (free there).
+    Elsewhere it is a pooled device array, filled from ``host`` on entry (``"r"``, ``"rw"``) and
+    copied back into ``host`` on leaving (``"w"``, ``"rw"``). Either way the queue is finished on
+    leaving (also on an exception), so ``host`` may be read or freed afterwards.
+    """
+    if access not in _ACCESS:
+        raise ValueError(f"access must be 'r', 'w' or 'rw', got {access!r}")
+    if not isinstance(host, np.ndarray) or not host.flags.c_contiguous:
+        raise ValueError("shared_array needs a C-contiguous numpy array")
+    if host.nbytes == 0:                   # no buffer of zero bytes: an empty device array
+        yield cla.empty(rt.queue, host.shape, host.dtype)
+        return
+    try:
+        if rt.host_unified:
+            buf = cl.Buffer(rt.context, _ACCESS[access] | cl.mem_flags.USE_HOST_PTR, hostbuf=host)
+            yield cla.Array(rt.queue, host.shape, host.dtype, data=buf)
+            if "w" in access:
+                mapped, _ = cl.enqueue_map_buffer(rt.queue, buf, cl.map_flags.READ, 0, host.shape, host.dtype)
+                mapped.base.release(rt.queue)
+        else:
+            dev = device_empty(rt, host.shape, host.dtype)
+            if "r" in access:
+                dev.set(host)
+            yield dev
+            if "w" in access:
+                dev.get(ary=host)
+    finally:
+        rt.queue.finish()
 
 
 @contextmanager
 def host_output(rt: Runtime, array: np.ndarray):
-    """A device buffer that the kernels write straight into ``array`` (C-contiguous host memory).
+    """A device buffer that the kernels write straight into ``array`` (C-contiguous host memory):
+    :func:`shared_array` with access ``"w"``, yielding its buffer (for ``rt.launch``).
 
-    Zero-copy on CPU devices (USE_HOST_PTR); on leaving the block the buffer is mapped for
-    reading, which on discrete GPUs copies the result into ``array``. Avoids allocating and
-    copying a second [H*W, C] image. READ_WRITE: kernels may accumulate into what they wrote.
+    Zero-copy on devices that share host memory; elsewhere a pooled device buffer copied into
+    ``array`` on leaving the block. Avoids allocating and copying a second [H*W, C] image.
     """
-    buf = cl.Buffer(rt.context, cl.mem_flags.READ_WRITE | cl.mem_flags.USE_HOST_PTR, hostbuf=array)
-    yield buf
-    mapped, _ = cl.enqueue_map_buffer(rt.queue, buf, cl.map_flags.READ, 0, array.shape, array.dtype)
-    mapped.base.release(rt.queue)
-    rt.queue.finish()
+    with shared_array(rt, array, "w") as dev:
+        yield dev.data
+
+
+@contextmanager
+def device_rows(rt: Runtime, rows: np.ndarray, cstride: int) -> Iterator[cla.Array]:
+    """Rows [R, C] (C <= cstride; a numpy array, e.g. ``tensor.detach().numpy()``) as read-only
+    float32 [R, cstride] device rows for the block, copied only when they have to be.
+
+    Float32 C-contiguous rows with C == cstride are used in place (zero-copy on devices sharing
+    host memory, one copy into a pooled device array elsewhere); other rows are first converted
+    and padded with zero columns into a pooled host array (:func:`host_empty`). The kernels must
+    not write to them.
+    """
+    rows = np.asarray(rows)
+    if rows.ndim != 2 or rows.shape[1] > cstride:
+        raise ValueError(f"rows must be [R, C] with C <= {cstride}, got {rows.shape}")
+    check_buffer(rt, 4 * rows.shape[0] * cstride, f"{rows.shape[0]} rows x {cstride} channels")
+    if rows.dtype != np.float32 or rows.shape[1] != cstride or not rows.flags.c_contiguous:
+        padded = host_empty((rows.shape[0], cstride))
+        padded[:, :rows.shape[1]] = rows
+        padded[:, rows.shape[1]:] = 0
+        rows = padded
+    with shared_array(rt, rows, "r") as dev:
+        yield dev
+
+
+# ----------------------------------------------------------------------------------------------
+# the host pool of large outputs
+# ----------------------------------------------------------------------------------------------
+
+def _refs(slots: list, i: int) -> int:
+    return sys.getrefcount(slots[i])
+
+
+#: What :func:`_refs` counts for an array referenced by nothing but the pool's list.
+_UNUSED_REFS = _refs([np.empty(1)], 0)
+
+
+class HostPool:
+    """Page-aligned host arrays of at least ``min_bytes`` kept between calls (at most
+    ``max_bytes`` in all), so that large outputs of warm calls reuse memory that is already
+    mapped instead of page-faulting fresh memory in: glibc maps large allocations (always above
+    32 MB) freshly and returns them to the system on free, and here even a 200 KB numpy array
+    was seen to page-fault in again on every allocation.
+
+    :meth:`empty` hands out a view of a pooled buffer and reuses a buffer only when nothing but
+    the pool references it: every numpy view of it references it (``.base``) and a torch tensor
+    made by ``torch.from_numpy`` holds its array, so a buffer is free exactly when no array,
+    view or tensor of an earlier output is alive (``sys.getrefcount``). Outputs therefore never
+    alias memory a caller still holds. Buffer sizes are rounded up to size classes of 1/8 of an
+    octave, so requests of slightly varying sizes (e.g. a view's tile keys) share buffers; free
+    ones are dropped least recently used first when a new one would exceed ``max_bytes``, and a
+    request that still does not fit gets a plain (unpooled) array.
+    """
+
+    ALIGN = 4096
+
+    def __init__(self, max_bytes: int, min_bytes: int = 1 << 16) -> None:
+        self.max_bytes, self.min_bytes = int(max_bytes), int(min_bytes)
+        self._slots: list[np.ndarray] = []       # uint8 owners, least recently used first
+        self._lock = threading.Lock()
+        self.hits = self.misses = 0
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the buffers the pool owns (free or handed out)."""
+        return sum(raw.nbytes for raw in self._slots)
+
+    @property
+    def free_bytes(self) -> int:
+        """Bytes of the pooled buffers nothing else references (reusable now)."""
+        with self._lock:
+            return sum(self._slots[i].nbytes for i in range(len(self._slots)) if self._free(i))
+
+    def _free(self, i: int) -> bool:
+        return _refs(self._slots, i) <= _UNUSED_REFS
+
+    def clear(self) -> None:
+        """Drop the free buffers (those still referenced stay with their holders)."""
+        with self._lock:
+            self._slots = [self._slots[i] for i in range(len(self._slots)) if not self._free(i)]
+
+    def empty(self, shape, dtype=np.float32) -> np.ndarray:
+        """An uninitialised C-contiguous array (page-aligned when pooled)."""
+        dtype = np.dtype(dtype)
+        shape = (int(shape),) if np.isscalar(shape) else tuple(int(s) for s in shape)
+        nbytes = math.prod(shape) * dtype.itemsize
+        if nbytes < self.min_bytes:
+            return np.empty(shape, dtype)
+        with self._lock:
+            raw = self._take(self.size_class(nbytes + self.ALIGN))
+        if raw is None:
+            return np.empty(shape, dtype)
+        start = -raw.__array_interface__["data"][0] % self.ALIGN
+        return raw[start:start + nbytes].view(dtype).reshape(shape)
+
+    def zeros(self, shape, dtype=np.float32) -> np.ndarray:
+        """As :meth:`empty`, zero-filled."""
+        out = self.empty(shape, dtype)
+        out.fill(0)
+        return out
+
+    @staticmethod
+    def size_class(nbytes: int) -> int:
+        """``nbytes`` rounded up to keep its 4 leading bits (at most 1/8 more)."""
+        shift = max(nbytes.bit_length() - 4, 0)
+        return -(-nbytes >> shift) << shift
+
+    def _take(self, size: int) -> np.ndarray | None:
+        slots = self._slots
+        for i in range(len(slots)):
+            if slots[i].nbytes == size and self._free(i):
+                slots.append(slots.pop(i))                 # most recently used last
+                self.hits += 1
+                return slots[-1]
+        self.misses += 1
+        if size > self.max_bytes:
+            return None
+        total = sum(raw.nbytes for raw in slots)
+        i = 0
+        while total + size > self.max_bytes and i < len(slots):
+            if self._free(i):
+                total -= slots.pop(i).nbytes
+            else:
+                i += 1
+        if total + size > self.max_bytes:
+            return None
+        slots.append(np.empty(size, np.uint8))
+        return slots[-1]
+
+
+_HOST_POOL: HostPool | None = None
+
+
+def host_pool() -> HostPool:
+    """The process-wide :class:`HostPool`, bounded by ``$QR_CL_HOST_POOL_MB`` MiB (default 2048:
+    two whole-image 512-D renders of 640x480, the previous one still held by the caller)."""
+    global _HOST_POOL
+    if _HOST_POOL is None:
+        _HOST_POOL = HostPool(int(os.environ.get("QR_CL_HOST_POOL_MB", 2048)) << 20)
+    return _HOST_POOL
+
+
+def host_empty(shape, dtype=np.float32) -> np.ndarray:
+    """An uninitialised host array for a large output, from :func:`host_pool` (memory of an
+    earlier output nobody references any more; small arrays are plain ``np.empty``)."""
+    return host_pool().empty(shape, dtype)
 
 
 @lru_cache(maxsize=None)

@@ -15,7 +15,7 @@ import pyopencl as cl
 import pyopencl.array as cla
 from pyopencl.algorithm import RadixSort
 
-from ..runtime import Runtime, exclusive_scan, last_value
+from ..runtime import Runtime, device_empty, device_zeros, exclusive_scan, host_empty, last_value, to_device
 from .project import tile_grid
 
 
@@ -63,12 +63,22 @@ class RasterPlan:
     def meta(self) -> dict[str, np.ndarray]:
         """Host copies: means2d [N,2] px, conics [N,3], depths [N], radii [N] int32, opacities [N],
         tile_ranges [tiles,2] [start, end) into flatten_ids [M] (depth-sorted Gaussian ids per
-        tile, as gsplat names them), n_keys = M."""
-        s = self.splats.get().reshape(-1, 8)
-        return {"means2d": s[:, 0:2].copy(), "conics": s[:, 2:5].copy(), "opacities": s[:, 5].copy(),
-                "depths": s[:, 6].copy(), "radii": self.radii.get(),
-                "tile_ranges": self.ranges.get().reshape(-1, 2),
-                "flatten_ids": self.ids.get()[:self.n_keys], "n_keys": self.n_keys}
+        tile, as gsplat names them), n_keys = M. Large arrays come from the host pool."""
+        s = _get(self.splats).reshape(-1, 8)
+
+        def column(cols):
+            out = host_empty((len(s), cols.stop - cols.start) if isinstance(cols, slice) else len(s))
+            out[...] = s[:, cols]
+            return out
+        return {"means2d": column(slice(0, 2)), "conics": column(slice(2, 5)), "opacities": column(5),
+                "depths": column(6), "radii": _get(self.radii),
+                "tile_ranges": _get(self.ranges).reshape(-1, 2),
+                "flatten_ids": _get(self.ids)[:self.n_keys], "n_keys": self.n_keys}
+
+
+def _get(array: cla.Array) -> np.ndarray:
+    """A host copy of a device array, in a pooled host array (no fresh pages for large ones)."""
+    return array.get(ary=host_empty(array.shape, array.dtype))
 
 
 @lru_cache(maxsize=None)
@@ -81,15 +91,20 @@ def radix_sorter(context: cl.Context) -> RadixSort:
 def sort_pairs(rt: Runtime, keys: cla.Array, values: cla.Array, key_bits: int) -> tuple[cla.Array, cla.Array]:
     """Sort (key, value) pairs by the low ``key_bits`` bits of the uint64 keys.
 
-    On a CPU device the host is the device: numpy's stable argsort on the mapped data is much
-    faster than pyopencl's GPU-style RadixSort there (see bench/test_bench_binning.py). On other
-    devices pyopencl's RadixSort runs on the device.
+    On a CPU-shaped runtime the host is the device: numpy's stable argsort on the mapped data is
+    much faster than pyopencl's GPU-style RadixSort there (see bench/test_bench_binning.py). On
+    GPU-shaped ones (:attr:`qr_cl.runtime.Runtime.gpu_shaped`) pyopencl's RadixSort runs on the
+    device; both are stable, so the order is the same.
     """
-    if rt.is_cpu:
-        host_keys = keys.get()
+    if not rt.gpu_shaped:
+        host_keys = _get(keys)
         order = np.argsort(host_keys, kind="stable")
-        return (cla.to_device(rt.queue, host_keys[order]), cla.to_device(rt.queue, values.get()[order]))
-    (sorted_keys, sorted_values), _ = radix_sorter(rt.context)(keys, values, key_bits=key_bits)
+        sorted_keys = to_device(rt, np.take(host_keys, order, out=host_empty(keys.shape, keys.dtype)), np.uint64)
+        host_values = _get(values)
+        return sorted_keys, to_device(rt, np.take(host_values, order, out=host_empty(values.shape, values.dtype)),
+                                      np.int32)
+    (sorted_keys, sorted_values), _ = radix_sorter(rt.context)(keys, values, key_bits=key_bits,
+                                                               allocator=rt.pool)
     return sorted_keys, sorted_values
 
 
@@ -102,13 +117,13 @@ def bin_and_sort(rt: Runtime, splats: cla.Array, rects: cla.Array, touched: cla.
     n = touched.size
     tiles_x, tiles_y = tile_grid(width, height)
     n_tiles = tiles_x * tiles_y
-    ranges = cla.zeros(rt.queue, (n_tiles, 2), np.int32)
-    offsets = exclusive_scan(rt, touched, cla.empty_like(touched))
+    ranges = device_zeros(rt, (n_tiles, 2), np.int32)
+    offsets = exclusive_scan(rt, touched, device_empty(rt, touched.shape, touched.dtype))
     m = last_value(offsets) + last_value(touched)
     if m == 0:
-        return ranges, cla.zeros(rt.queue, 1, np.int32), 0
-    keys = cla.empty(rt.queue, m, np.uint64)
-    values = cla.empty(rt.queue, m, np.int32)
+        return ranges, device_zeros(rt, 1, np.int32), 0
+    keys = device_empty(rt, m, np.uint64)
+    values = device_empty(rt, m, np.int32)
     rt.launch("emit_keys", n, n=n, rects=rects, offsets=offsets, splats=splats, tiles_x=tiles_x,
               keys=keys, values=values)
     key_bits = 32 + max(1, int(n_tiles - 1).bit_length())

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pyopencl.array as cla
 
-from ..runtime import Runtime, TILE, to_device
+from ..runtime import Runtime, TILE, device_empty, to_device
 
 
 def tile_grid(width: int, height: int) -> tuple[int, int]:
@@ -24,10 +24,10 @@ def project(rt: Runtime, means: cla.Array, quats: cla.Array, scales: cla.Array, 
     """
     n = means.shape[0]
     tiles_x, tiles_y = tile_grid(width, height)
-    splats = cla.empty(rt.queue, (n, 8), np.float32)
-    radii = cla.empty(rt.queue, n, np.int32)
-    rects = cla.empty(rt.queue, (n, 4), np.int32)
-    touched = cla.empty(rt.queue, n, np.int32)
+    splats = device_empty(rt, (n, 8), np.float32)
+    radii = device_empty(rt, n, np.int32)
+    rects = device_empty(rt, (n, 4), np.int32)
+    touched = device_empty(rt, n, np.int32)
     rt.launch("project", n, n=n, means=means, quats=quats, scales=scales, opacities=opacities,
               viewmat=to_device(rt, np.asarray(viewmat).reshape(16)),
               fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], width=width, height=height,

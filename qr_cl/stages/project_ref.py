@@ -8,6 +8,10 @@ from ..runtime import TILE
 from ..scene.gaussians import quat_to_rotmat
 from .project import tile_grid
 
+#: The largest radius stored in radii (px), as project.cl's RADIUS_MAX: radii are clamped in float
+#: before the int conversion (an out-of-range conversion has no defined value).
+RADIUS_MAX = 2 ** 30
+
 
 def project(means, quats, scales, opacities, viewmat, K, width: int, height: int,
             near: float = 0.01, far: float = 1e10) -> dict[str, np.ndarray]:
@@ -33,17 +37,19 @@ def project(means, quats, scales, opacities, viewmat, K, width: int, height: int
         a, b, c = cov2d[:, 0, 0], cov2d[:, 0, 1], cov2d[:, 1, 1]
         det = a * c - b * b
         mid = 0.5 * (a + c)
-        radius = np.ceil(3 * np.sqrt(mid + np.sqrt(np.maximum(0.1, mid * mid - det))))
+        radius = np.ceil(3 * np.sqrt(mid + np.sqrt(np.fmax(0.1, mid * mid - det))))
         mean2d = np.stack([fx * x / z + cx, fy * y / z + cy], -1)
         tiles = np.array(tile_grid(width, height))
         lo = np.clip(np.trunc((mean2d - radius[:, None]) / TILE), 0, tiles)
         hi = np.clip(np.trunc((mean2d + radius[:, None] + TILE - 1) / TILE), 0, tiles)
         touched = np.prod(hi - lo, axis=1)
-        visible = (z >= near) & (z <= far) & (det > 0) & (touched > 0)
+        finite = np.all(np.abs(mean2d) <= np.finfo(np.float32).max, axis=1)   # as float32
+        visible = (z >= near) & (z <= far) & (det > 0) & finite & (touched > 0)
         conics = np.stack([c / det, -b / det, a / det], -1)
     zero = ~visible
     return {"means2d": np.where(zero[:, None], 0, mean2d), "conics": np.where(zero[:, None], 0, conics),
-            "depths": np.where(zero, 0, z), "radii": np.where(zero, 0, radius).astype(np.int32),
+            "depths": np.where(zero, 0, z),
+            "radii": np.where(zero, 0, np.fmin(radius, RADIUS_MAX)).astype(np.int32),
             "rects": np.where(zero[:, None], 0, np.concatenate([lo, hi], 1)).astype(np.int32),
             "tiles_touched": np.where(zero, 0, touched).astype(np.int64),
             "opacities": np.where(zero, 0, np.asarray(opacities, np.float64))}

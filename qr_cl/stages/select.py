@@ -10,18 +10,23 @@ Samplers:
     ``quantile`` Algorithm 1 of the paper (K quantile Gaussians), w = T^Q alpha' / (1 - T^Q).
     ``topk``     the K largest V-Render weights, re-composited in depth order among the selected,
                  normalized by 1 / (1 - T) as Q-Render.
-For quantile and topk the normalized weights sum to 1, so the background only shows through rays
+    ``stratified`` Stratified-K (App. E): Algorithm 1 with the K boundaries at quantiles of the
+                 normal fitted to the ray's transmittance values (a first V-Render walk).
+For quantile, topk and stratified the normalized weights sum to 1, so the background only shows through rays
 that selected nothing (background weight 1 there, 0 elsewhere).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import lru_cache
 
 import numpy as np
+import pyopencl as cl
 import pyopencl.array as cla
+from pyopencl.scan import InclusiveScanKernel
 
 from ..runtime import SAMPLERS, TILE, check_buffer, exclusive_scan, last_value
-from .binning import RasterPlan
+from .binning import RasterPlan, sort_pairs
 
 #: Work-group size of the block kernels (select.cl, vrender.cl): PoCL runs the work-items of a group
 #: on one thread's stack, and its default groups of up to 4096 overflow it with the block walk's
@@ -78,31 +83,16 @@ class Selection:
         return ray_launch(self.plan, self.pixels)
 
     def transpose(self) -> tuple[cla.Array, cla.Array, cla.Array, int]:
-        """The entries grouped by Gaussian (transpose.cl: stable counting sort, no atomics),
-        computed once and kept in ``transposed``.
+        """The entries grouped by Gaussian (transpose.cl, no float atomics), computed once and kept
+        in ``transposed``: a counting sort by a few long work-items on CPU-shaped runtimes, a
+        device sort of (Gaussian, entry) keys on GPU-shaped ones; the same bytes either way.
 
         Returns (cursor [N * chunks] int32: cursor[(g+1) * chunks - 1] is the end of Gaussian g's
         segment, ray [E] int32 and weight [E] float32 per transposed entry, chunks). Within a
         Gaussian, entries are ordered by ray then by position in the ray.
         """
         if self.transposed is None:
-            rt = self.plan.runtime
-            q = rt.queue
-            n, n_rays = self.n_gaussians, self.n_rays
-            chunks = max(1, min(MAX_CHUNKS, n_rays, MAX_HIST // max(n, 1)))
-            rays_per = -(-n_rays // chunks) if n_rays else 1
-            cursor = cla.zeros(q, n * chunks, np.int32)
-            total = int(cla.sum(self.count).get()) if n_rays else 0
-            t_ray = cla.empty(q, max(total, 1), np.int32)
-            t_w = cla.empty(q, max(total, 1), np.float32)
-            if n_rays:
-                args = dict(n_rays=n_rays, rays_per=rays_per, n_chunks=chunks, offsets=self.offsets,
-                            count=self.count, sel_ids=self.ids)
-                rt.launch("transpose_count", chunks, **args, hist=cursor)
-                exclusive_scan(rt, cursor)
-                rt.launch("transpose_fill", chunks, **args, sel_w=self.weights, cursor=cursor,
-                          t_ray=t_ray, t_w=t_w)
-            self.transposed = (cursor, t_ray, t_w, chunks)
+            self.transposed = (_transpose_sorted if self.plan.runtime.gpu_shaped else _transpose_counted)(self)
         return self.transposed
 
     def host(self) -> dict[str, np.ndarray]:
@@ -136,6 +126,56 @@ def check_pixels(pixels, width: int, height: int) -> np.ndarray:
         x, y = arr[np.argmax(bad)]
         raise ValueError(f"{int(bad.sum())} pixel(s) outside the {width}x{height} image, e.g. ({x}, {y})")
     return np.ascontiguousarray(arr, np.int32)
+
+
+def _transpose_counted(sel: Selection) -> tuple[cla.Array, cla.Array, cla.Array, int]:
+    """CPU-shaped transpose (transpose_count / transpose_fill): a stable counting sort by a few
+    long work-items, each owning a contiguous chunk of rays."""
+    rt = sel.plan.runtime
+    q = rt.queue
+    n, n_rays = sel.n_gaussians, sel.n_rays
+    chunks = max(1, min(MAX_CHUNKS, n_rays, MAX_HIST // max(n, 1)))
+    rays_per = -(-n_rays // chunks) if n_rays else 1
+    cursor = cla.zeros(q, n * chunks, np.int32)
+    total = int(cla.sum(sel.count).get()) if n_rays else 0
+    t_ray = cla.empty(q, max(total, 1), np.int32)
+    t_w = cla.empty(q, max(total, 1), np.float32)
+    if n_rays:
+        args = dict(n_rays=n_rays, rays_per=rays_per, n_chunks=chunks, offsets=sel.offsets,
+                    count=sel.count, sel_ids=sel.ids)
+        rt.launch("transpose_count", chunks, **args, hist=cursor)
+        exclusive_scan(rt, cursor)
+        rt.launch("transpose_fill", chunks, **args, sel_w=sel.weights, cursor=cursor,
+                  t_ray=t_ray, t_w=t_w)
+    return cursor, t_ray, t_w, chunks
+
+
+@lru_cache(maxsize=None)
+def _max_scan(context: cl.Context) -> InclusiveScanKernel:
+    return InclusiveScanKernel(context, np.int32, "max(a, b)", "0")
+
+
+def _transpose_sorted(sel: Selection) -> tuple[cla.Array, cla.Array, cla.Array, int]:
+    """GPU-shaped transpose (transpose_keys -> device sort -> transpose_gather -> max-scan): one
+    work-item per ray or entry; the same entries in the same order as :func:`_transpose_counted`,
+    with one chunk (cursor[g] = the end of Gaussian g's segment)."""
+    rt, n, n_rays = sel.plan.runtime, sel.n_gaussians, sel.n_rays
+    q = rt.queue
+    compact = exclusive_scan(rt, sel.count[:max(n_rays, 1)], cla.empty(q, max(n_rays, 1), np.int32))
+    total = last_value(compact) + last_value(sel.count[:max(n_rays, 1)]) if n_rays else 0
+    cursor = cla.zeros(q, n, np.int32)
+    t_ray, t_w = cla.empty(q, max(total, 1), np.int32), cla.empty(q, max(total, 1), np.float32)
+    if total:
+        keys, values = cla.empty(q, total, np.uint64), cla.empty(q, total, np.int32)
+        entry_ray, entry_w = cla.empty(q, total, np.int32), cla.empty(q, total, np.float32)
+        rt.launch("transpose_keys", n_rays, n_rays=n_rays, offsets=sel.offsets, count=sel.count,
+                  compact=compact, sel_ids=sel.ids, sel_w=sel.weights, keys=keys, values=values,
+                  entry_ray=entry_ray, entry_w=entry_w)
+        keys, values = sort_pairs(rt, keys, values, 32 + max(1, int(n - 1).bit_length()))
+        rt.launch("transpose_gather", total, n=total, keys=keys, values=values, entry_ray=entry_ray,
+                  entry_w=entry_w, t_ray=t_ray, t_w=t_w, ends=cursor)
+        _max_scan(rt.context)(cursor)
+    return cursor, t_ray, t_w, 1
 
 
 def ray_launch(plan: RasterPlan, pixels: np.ndarray | None) -> tuple[int, int]:
@@ -238,3 +278,153 @@ def transmittance_profile(selection: Selection, ray: int) -> tuple[np.ndarray, n
     t = 1.0 - np.concatenate([[0.0], np.cumsum(w * scale)])
     depths = selection.plan.splats.get().reshape(-1, 8)[ids, 6] if n else np.zeros(0, np.float32)
     return depths, t
+
+
+# ----------------------------------------------------------------------------------------------
+# subsets of rays and compact id tables (training: rays sampled from per-view selections, and
+# features computed only for the Gaussians a step's selections use)
+# ----------------------------------------------------------------------------------------------
+
+def ray_entries(offsets: np.ndarray, count: np.ndarray) -> np.ndarray:
+    """Positions [E] int64 in ``ids`` / ``weights`` of every entry of the rays with these
+    ``offsets`` and ``count`` [P] (host arrays of a Selection), ray by ray, in entry order."""
+    count = np.asarray(count, np.int64)
+    starts = np.repeat(np.asarray(offsets, np.int64) - (np.cumsum(count) - count), count)
+    return starts + np.arange(int(count.sum()), dtype=np.int64)
+
+
+def gather_rays(selection: Selection, rays) -> Selection:
+    """The Selection of the rays ``rays`` [P] (integer indices into ``selection``'s rays; for a
+    whole-image selection ray y * width + x), copied on the device: the same entries, weights and
+    per-ray transmittances that :func:`select` computes for those pixels, so a view's whole-image
+    selection, computed once, serves any subset of its rays.
+
+    The result has ``pixels`` [P,2] (x, y) set; quantile/top-K keep dense rows of K (a ray's K
+    slots copied whole, padding included), volume gets a fresh CSR list.
+    """
+    rays = np.asarray(rays)
+    if rays.ndim != 1 or (rays.size and not np.issubdtype(rays.dtype, np.integer)):
+        raise ValueError(f"rays must be a 1-D integer array, got {rays.dtype} {rays.shape}")
+    rays = rays.astype(np.int64)
+    n_all = selection.n_rays
+    if rays.size and (rays.min() < 0 or rays.max() >= n_all):
+        raise ValueError(f"rays must index the selection's {n_all} rays, got [{rays.min()}, {rays.max()}]")
+    if selection.pixels is None:
+        width = selection.plan.width
+        pixels = np.stack([rays % width, rays // width], 1).astype(np.int32)
+    else:
+        pixels = np.ascontiguousarray(selection.pixels[rays], np.int32)
+    q = selection.plan.runtime.queue
+    n = len(rays)
+    if n == 0:
+        return Selection(selection.plan, selection.sampler, selection.k, pixels, cla.empty(q, 1, np.int32),
+                         cla.empty(q, 1, np.float32), cla.zeros(q, 1, np.int32),
+                         *(cla.empty(q, 1, dt) for dt in (np.int32, np.float32, np.float32, np.float32)))
+    k = selection.k
+    if selection.sampler == "volume":
+        count = selection.count.get()[:n_all][rays]
+        offsets = (np.cumsum(count) - count).astype(np.int32)
+        source = ray_entries(selection.offsets.get()[:n_all][rays], count)
+    else:                                    # dense rows: ray p's K slots start at p * K
+        offsets = np.arange(0, n * k, k, dtype=np.int32)
+        source = (rays[:, None] * k + np.arange(k)).ravel()
+    if source.size == 0:
+        ids, weights = cla.empty(q, 1, np.int32), cla.empty(q, 1, np.float32)
+    else:
+        index = cla.to_device(q, source.astype(np.int32))
+        ids, weights = cla.take(selection.ids, index), cla.take(selection.weights, index)
+    ray_index = cla.to_device(q, rays.astype(np.int32))
+    per_ray = [cla.take(a, ray_index) for a in (selection.count, selection.t_walk, selection.t_sel, selection.t_rem)]
+    return Selection(selection.plan, selection.sampler, k, pixels, ids, weights, cla.to_device(q, offsets), *per_ray)
+
+
+@dataclass
+class CompactSelection(Selection):
+    """A Selection whose entry ids index a compact table of ``n_rows`` rows (see
+    :func:`compact_selections`) instead of the plan's Gaussians: blend it with features
+    [n_rows, C]; the blend backward then returns dF [n_rows, C]."""
+
+    n_rows: int = 0
+
+    @property
+    def n_gaussians(self) -> int:
+        return self.n_rows
+
+
+def remap_ids(selection: Selection, lut: np.ndarray, n_rows: int) -> CompactSelection:
+    """``selection`` with every entry id g replaced by ``lut[g]`` (lut [N] integer, values in
+    0..n_rows-1 for every Gaussian an entry uses), as a :class:`CompactSelection` of ``n_rows``
+    rows sharing the other device arrays. Padding slots of dense rows become -1."""
+    return _remap(selection, *_host_entries(selection), lut, n_rows)
+
+
+def _host_entries(selection: Selection) -> tuple[np.ndarray, np.ndarray]:
+    """(ids [len(selection.ids)] int32 on the host, positions [E] of the rays' entries in it)."""
+    n = selection.n_rays
+    return selection.ids.get(), ray_entries(selection.offsets.get()[:n], selection.count.get()[:n])
+
+
+def _remap(selection: Selection, ids: np.ndarray, entries: np.ndarray, lut: np.ndarray,
+           n_rows: int) -> CompactSelection:
+    used = ids[entries]
+    if used.size and (used.min() < 0 or used.max() >= len(lut)):
+        raise ValueError(f"lut has {len(lut)} rows; the selection uses ids up to {used.max()}")
+    mapped = np.asarray(lut)[used]
+    if mapped.size and (mapped.min() < 0 or mapped.max() >= n_rows):
+        raise ValueError(f"lut maps the selection's ids outside 0..{n_rows - 1}")
+    remapped = np.full(ids.shape, -1, np.int32)
+    remapped[entries] = mapped
+    q = selection.plan.runtime.queue
+    return CompactSelection(selection.plan, selection.sampler, selection.k, selection.pixels,
+                            cla.to_device(q, remapped), selection.weights, selection.offsets, selection.count,
+                            selection.t_walk, selection.t_sel, selection.t_rem, n_rows=int(n_rows))
+
+
+def compact_selections(selections: list[Selection]) -> tuple[np.ndarray, list[CompactSelection]]:
+    """The Gaussians that ``selections`` (of one scene: the same N) use, and the selections
+    re-indexed into them: (rows [U] int64, the used Gaussian ids ascending; one
+    :class:`CompactSelection` of U rows per input). Blending a compact selection with
+    ``features[rows]`` [U,C] gives the image blending the original with ``features`` [N,C] gives
+    (the same entries in the same order), and its backward's dF [U,C] are the rows ``rows`` of
+    the original's dF (the others are zero)."""
+    if not selections:
+        return np.zeros(0, np.int64), []
+    n = selections[0].n_gaussians
+    if any(s.n_gaussians != n for s in selections):
+        raise ValueError(f"selections of different scenes: N = {sorted({s.n_gaussians for s in selections})}")
+    hosts = [_host_entries(s) for s in selections]
+    used = np.zeros(n, bool)
+    for ids, entries in hosts:
+        used[ids[entries]] = True
+    rows = np.flatnonzero(used)
+    lut = (np.cumsum(used) - 1).astype(np.int32)
+    return rows, [_remap(s, ids, entries, lut, len(rows)) for s, (ids, entries) in zip(selections, hosts)]
+
+
+def concat_selections(selections: list[Selection]) -> Selection:
+    """The rays of several pixel-subset selections over the same Gaussians (e.g. a training step's
+    views of one scene, same sampler and K) one after the other, as one Selection: ray i of part j
+    is ray (rays of parts before j) + i, with the same entries, weights and transmittances, so one
+    blend (and one backward, one transpose) serves them all and its image rows are the parts'
+    images stacked. The result keeps the first part's plan (runtime, N) and every part's
+    ``pixels`` (each in its own view's image); it is a CompactSelection when the parts are."""
+    if not selections:
+        raise ValueError("no selections to concatenate")
+    first = selections[0]
+    if any(s.pixels is None for s in selections):
+        raise ValueError("concat_selections takes pixel subsets (gather_rays makes one from a whole image)")
+    if any((s.sampler, s.k, s.n_gaussians, type(s)) != (first.sampler, first.k, first.n_gaussians, type(first))
+           for s in selections):
+        raise ValueError("the selections differ in sampler, K, Gaussians or kind")
+    parts = [s for s in selections if s.n_rays]
+    if not parts:
+        return first
+    q = first.plan.runtime.queue
+    base = np.cumsum([0] + [s.ids.shape[0] for s in parts[:-1]])
+    offsets = np.concatenate([s.offsets.get()[:s.n_rays] + b for s, b in zip(parts, base)]).astype(np.int32)
+    entries = {name: cla.concatenate([getattr(s, name) for s in parts], queue=q) for name in ("ids", "weights")}
+    per_ray = {name: cla.concatenate([getattr(s, name)[:s.n_rays] for s in parts], queue=q)
+               for name in ("count", "t_walk", "t_sel", "t_rem")}
+    extra = {"n_rows": first.n_rows} if isinstance(first, CompactSelection) else {}
+    return type(first)(first.plan, first.sampler, first.k, np.concatenate([s.pixels for s in parts]),
+                       offsets=cla.to_device(q, offsets), **entries, **per_ray, **extra)

@@ -5,6 +5,8 @@ Per-pixel math in float32 with the kernels' order of operations (sequential prod
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from ..runtime import ALPHA_MAX, ALPHA_MIN, T_MIN, TILE
@@ -92,9 +94,98 @@ def topk_select(alpha: np.ndarray, K: int) -> tuple[np.ndarray, np.ndarray, floa
     return keep, weights.astype(np.float32), float(TQ), t_final
 
 
+def normal_quantile(p: float) -> float:
+    """Inverse standard normal CDF by Acklam's rational approximation, clamped to [-8, 8]
+    (select.cl's normal_quantile, in float64)."""
+    if p <= 0:
+        return -8.0
+    if p >= 1:
+        return 8.0
+    lo = 0.02425
+    if p < lo or p > 1 - lo:
+        q = math.sqrt(-2 * math.log(p if p < lo else 1 - p))
+        x = ((((((-7.784894002430293e-03 * q - 3.223964580411365e-01) * q - 2.400758277161838e+00) * q
+                - 2.549671010243101e+00) * q + 4.374664141464968e+00) * q + 2.938163982698783e+00)
+             / ((((7.784695709041462e-03 * q + 3.224671290700398e-01) * q + 2.445134137142996e+00) * q
+                 + 3.754408661907416e+00) * q + 1))
+        x = x if p < lo else -x
+    else:
+        q = p - 0.5
+        r = q * q
+        x = ((((((-3.969683028665376e+01 * r + 2.209460984245205e+02) * r - 2.759285104469687e+02) * r
+                + 1.383577518672690e+02) * r - 3.066479806614716e+01) * r + 2.506628277459239e+00) * q
+             / (((((-5.447609879822406e+01 * r + 1.615858368580409e+02) * r - 1.556989798598866e+02) * r
+                  + 6.680131188771972e+01) * r - 1.328068155288572e+01) * r + 1))
+    return min(max(x, -8.0), 8.0)
+
+
+def stratified_boundary(k: int, K: int, mu: float, sigma: float, t_end: float) -> np.float32:
+    """Stratified-K's (k+1)-th boundary: the quantile (k+1)/(K+1), counted from T = 1 down, of
+    N(mu, sigma^2) cut to [t_end, 1] (uniform in [t_end, 1] when sigma is 0); -1 for k >= K."""
+    if k >= K:
+        return np.float32(-1)
+    f = (k + 1) / (K + 1)
+    if not sigma > 0:
+        return np.float32(1 - f * (1 - t_end))
+    cdf = lambda x: 0.5 * (1 + math.erf(x / math.sqrt(2)))
+    p_hi, p_lo = cdf((1 - mu) / sigma), cdf((t_end - mu) / sigma)
+    return np.float32(mu + sigma * normal_quantile(p_hi - f * (p_hi - p_lo)))
+
+
+def stratified_stats(alpha: np.ndarray) -> tuple[float, float, float]:
+    """(mean, standard deviation, final value) of the transmittance after each Gaussian of the
+    V-Render walk of one ray (1, 0, 1 when it blends nothing)."""
+    pos, w, t_final = volume_select(alpha)
+    if not len(pos):
+        return 1.0, 0.0, 1.0
+    t = np.cumprod(1 - alpha[pos].astype(np.float64))
+    return float(t.mean()), float(t.std()), float(t_final)
+
+
+def stratified_select(alpha: np.ndarray, K: int) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """Stratified-K (App. E) on one ray: the V-Render walk's transmittance statistics place the
+    K boundaries (:func:`stratified_boundary`), then Algorithm 1 walks the same Gaussians with
+    them. Returns (positions [m], weights [m] normalized as Q-Render, T^Q, final T)."""
+    mu, sigma, t_end = stratified_stats(alpha)
+    pos, _, t_final = volume_select(alpha)
+    one = np.float32(1)
+    T, TQ, k = one, one, 0
+    picked, w = [], []
+    for i in pos:
+        a = np.float32(alpha[i])
+        t_test = T * (one - a)
+        if t_test < stratified_boundary(k, K, mu, sigma, t_end):
+            picked.append(i)
+            w.append(TQ * a)
+            TQ = TQ * (one - a)
+            k += 1
+            while t_test < stratified_boundary(k, K, mu, sigma, t_end):
+                k += 1
+        T = t_test
+    return np.asarray(picked, np.int64), _normalize(np.asarray(w, np.float32)), float(TQ), t_final
+
+
+def stratified_margin(alpha: np.ndarray, K: int) -> float:
+    """Smallest relative distance between a T_test of the walk and the boundary it is compared
+    with (rays where kernel and twin may differ: float32 statistics vs float64, erf)."""
+    mu, sigma, t_end = stratified_stats(alpha)
+    pos, _, _ = volume_select(alpha)
+    one, T, k, margin = np.float32(1), np.float32(1), 0, np.inf
+    for i in pos:
+        t_test = T * (one - np.float32(alpha[i]))
+        b = stratified_boundary(k, K, mu, sigma, t_end)
+        if b > 0:
+            margin = min(margin, abs(float(t_test) - float(b)) / float(b))
+        while t_test < stratified_boundary(k, K, mu, sigma, t_end):
+            k += 1
+        T = t_test
+    return float(margin)
+
+
 def select(proj: dict, ranges: np.ndarray, ids: np.ndarray, pixels: np.ndarray, width: int,
            sampler: str, K: int = 0) -> dict[str, np.ndarray]:
-    """Selection of rays ``pixels`` [P,2] (x, y) for sampler "volume", "quantile" or "topk".
+    """Selection of rays ``pixels`` [P,2] (x, y) for sampler "volume", "quantile", "topk" or
+    "stratified".
 
     proj: means2d, conics, opacities per Gaussian (a RasterPlan's meta() or :func:`project`);
     ranges/ids: per-tile depth-sorted lists. Returns ids [P,L] (-1 padded), weights [P,L]
@@ -110,6 +201,8 @@ def select(proj: dict, ranges: np.ndarray, ids: np.ndarray, pixels: np.ndarray, 
             pos, w, t_sel, t_walk = quantile_select(alpha, K)
         elif sampler == "topk":
             pos, w, t_sel, t_walk = topk_select(alpha, K)
+        elif sampler == "stratified":
+            pos, w, t_sel, t_walk = stratified_select(alpha, K)
         elif sampler == "volume":
             pos, w, t_walk = volume_select(alpha)
             t_sel = t_walk

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pyopencl.array as cla
 
-from ..runtime import Runtime, to_device
+from ..runtime import Runtime, device_zeros, to_device
 
 
 def sh_degree_of(sh: np.ndarray) -> int:
@@ -21,7 +21,7 @@ def sh_colors(rt: Runtime, means: cla.Array, sh: np.ndarray, campos: np.ndarray)
     sh [N,(d+1)^2,3] (d <= 3), Gaussian centres ``means`` [N,3] and the camera centre campos [3]."""
     n = sh.shape[0]
     degree = sh_degree_of(sh)
-    colors = cla.zeros(rt.queue, (max(n, 1), 4), np.float32)
+    colors = device_zeros(rt, (max(n, 1), 4), np.float32)
     if n:
         rt.launch("sh_to_rgb", n, defines={"DEGREE": degree}, n=n, means=means,
                   sh=to_device(rt, sh), campos=campos, colors=colors)

@@ -1,0 +1,129 @@
+"""Training that touches only what its rays select: compact de-voxelization, per-view selections
+gathered instead of recomputed, the step's loss equal to the full-table render's."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from qr_cl.app.data import load_scene_folder
+from qr_cl.app.loss import ViewSelections, contrastive_loss, rays_loss, sample_rays, scene_loss, step_rays
+from qr_cl.app.model import torch_threads
+from qr_cl.app.train import TrainConfig, train
+from qr_cl.backbone import GSNet, VoxelConfig, devoxelize, minkunet14
+from qr_cl.render import rasterize
+from qr_cl.scene import Gaussians
+from synthetic_helpers import tiny_scene
+
+SMALL = dict(stem_channels=8, stem_kernel=3, enc_channels=(8, 16, 16), enc_blocks=(1, 1, 1),
+             dec_channels=(16, 8, 8), dec_blocks=(1, 1, 1))
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    with torch_threads(1):
+        yield
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    return tiny_scene(tmp_path_factory.mktemp("cache"), seed=1)
+
+
+def random_gaussians(n: int, seed: int) -> Gaussians:
+    g = torch.Generator().manual_seed(seed)
+    return Gaussians.from_rgb(
+        torch.rand(n, 3, generator=g) * 0.6, torch.randn(n, 4, generator=g), torch.rand(n, 3, generator=g) * 0.03 + 1e-3,
+        torch.rand(n, generator=g) * 0.9 + 0.05, torch.rand(n, 3, generator=g))
+
+
+@pytest.mark.parametrize("shape,reduce", [("center", "max"), ("volume", "max"), ("volume", "mean")])
+def test_devoxelize_rows_are_rows_of_the_full_result(shape, reduce):
+    batch = GSNet(8, VoxelConfig(grid_size=0.05, sample_shape=shape), minkunet14(7, **SMALL)).prepare(
+        [random_gaussians(120, 1), random_gaussians(80, 2)])
+    voxels = torch.randn(batch.coords.shape[0], 5, generator=torch.Generator().manual_seed(3))
+    rows = torch.tensor([199, 0, 57, 57, 120, 3])
+    assert torch.equal(devoxelize(voxels, batch, reduce, rows), devoxelize(voxels, batch, reduce)[rows])
+    assert devoxelize(voxels, batch, reduce, torch.zeros(0, dtype=torch.int64)).shape == (0, 5)
+    with pytest.raises(ValueError, match="rows"):
+        devoxelize(voxels, batch, reduce, torch.tensor([200]))
+
+
+@pytest.mark.parametrize("shape,reduce", [("center", "max"), ("volume", "max"), ("volume", "mean")])
+def test_gsnet_rows_are_rows_of_the_full_forward(shape, reduce):
+    torch.manual_seed(0)
+    net = GSNet(16, VoxelConfig(grid_size=0.05, sample_shape=shape), minkunet14(7, **SMALL), reduce=reduce).eval()
+    batch = net.prepare(random_gaussians(150, 4))
+    rows = torch.tensor([5, 149, 0, 77])
+    with torch.no_grad():
+        torch.testing.assert_close(net(batch, rows), net(batch)[rows], rtol=1e-5, atol=1e-6)
+    net.train()
+    net(batch, rows).sum().backward()
+    assert net.head.weight.grad.abs().sum() > 0
+
+
+def _cfg(scene, out, **kw) -> TrainConfig:
+    base = dict(scenes=[str(scene)], out=str(out), steps=5, views=3, rays=200, net="tiny", lr=1e-2, grid_size=0.2,
+                k=8, checkpoint_every=100, plateau_interval=4)
+    base.update(kw)
+    return TrainConfig(**base)
+
+
+@pytest.mark.parametrize("sampler,k", [("quantile", 8), ("volume", 0)])
+def test_step_rays_gathered_equal_recomputed(scene, sampler, k):
+    data = load_scene_folder(scene)
+    cfg = _cfg(scene, "-", sampler=sampler, k=k)
+    views = ViewSelections(1 << 30)
+    for seed in range(2):
+        kept = step_rays(data, cfg, np.random.default_rng(seed), views)
+        fresh = step_rays(data, cfg, np.random.default_rng(seed))
+        np.testing.assert_array_equal(kept.rows, fresh.rows)
+        for name, value in kept.selection.host().items():
+            np.testing.assert_array_equal(value, fresh.selection.host()[name], err_msg=name)
+        assert kept.n_rays == 3 * 200 and 0 < kept.touched < 1
+    assert 0 < len(views._views) <= len(data.frames) and views.nbytes > 0
+    none = ViewSelections(0)
+    step_rays(data, cfg, np.random.default_rng(0), none)
+    assert none.nbytes == 0 and not none._views
+
+
+def test_compact_loss_equals_the_full_table_render(scene):
+    """The step's loss from the compact table equals the loss of every view rendered with
+    rasterize from the whole [N, C] table (the previous path), and so do the gradients."""
+    data = load_scene_folder(scene)
+    cfg = _cfg(scene, "-")
+    full = F.normalize(torch.randn(len(data.gaussians), data.feature_dim, generator=torch.Generator().manual_seed(0)),
+                       dim=1).requires_grad_()
+    rays = step_rays(data, cfg, np.random.default_rng(7))
+    table = full.detach()[torch.from_numpy(rays.rows)].requires_grad_()
+    compact = rays_loss(rays, table, cfg.temperature)
+    rng = np.random.default_rng(7)
+    usable = [i for i, f in enumerate(data.frames) if len(f.features) > 1]
+    losses = []
+    for v in rng.choice(usable, cfg.views, replace=cfg.views > len(usable)):
+        frame, g = data.frames[int(v)], data.gaussians
+        pixels, target = sample_rays(frame, cfg.rays, rng)
+        cam = frame.camera
+        image, _, _ = rasterize(g.means, g.quats, g.scales, g.opacities, full, cam.viewmat, cam.K, cam.width,
+                                cam.height, sampler=cfg.sampler, k=cfg.k, pixels=pixels)
+        losses.append(contrastive_loss(image, torch.from_numpy(target), torch.from_numpy(frame.features),
+                                       cfg.temperature))
+    reference = torch.stack(losses).mean()
+    torch.testing.assert_close(compact, reference, rtol=1e-6, atol=0)
+    compact.backward()
+    reference.backward()
+    torch.testing.assert_close(table.grad, full.grad[torch.from_numpy(rays.rows)], rtol=1e-5, atol=1e-8)
+    outside = np.setdiff1d(np.arange(len(data.gaussians)), rays.rows)
+    assert not full.grad[torch.from_numpy(outside)].any()
+    value, n = scene_loss(data, full.detach(), cfg, np.random.default_rng(7))
+    assert n == rays.n_rays and torch.equal(value, compact.detach())
+
+
+def test_same_seed_same_curve_with_or_without_kept_selections(scene, tmp_path):
+    kept = train(_cfg(scene, tmp_path / "a"), progress=False)
+    again = train(_cfg(scene, tmp_path / "b"), progress=False)
+    fresh = train(_cfg(scene, tmp_path / "c", view_selections_mb=0), progress=False)
+    assert kept.history == again.history == fresh.history
+    assert kept.views.nbytes > 0 and fresh.views.nbytes == 0
+    assert all(0 < t < 1 for t in kept.touched)
