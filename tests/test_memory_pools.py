@@ -9,7 +9,7 @@ import pytest
 import torch
 
 import qr_cl
-from qr_cl.runtime import (HostPool, Runtime, device_empty, device_rows, host_pool, runtime, shared_array,
+from qr_cl.runtime import (HostPool, Runtime, device_empty, device_rows, runtime, shared_array,
                            trim_device_pool)
 
 

@@ -25,7 +25,8 @@ import pyopencl as cl
 import pyopencl.array as cla
 from pyopencl.scan import InclusiveScanKernel
 
-from ..runtime import SAMPLERS, TILE, check_buffer, exclusive_scan, last_value
+from ..runtime import (SAMPLERS, TILE, check_buffer, device_empty, device_zeros, exclusive_scan, last_value,
+                       to_device)
 from .binning import RasterPlan, sort_pairs
 
 #: Work-group size of the block kernels (select.cl, vrender.cl): PoCL runs the work-items of a group
@@ -132,14 +133,13 @@ def _transpose_counted(sel: Selection) -> tuple[cla.Array, cla.Array, cla.Array,
     """CPU-shaped transpose (transpose_count / transpose_fill): a stable counting sort by a few
     long work-items, each owning a contiguous chunk of rays."""
     rt = sel.plan.runtime
-    q = rt.queue
     n, n_rays = sel.n_gaussians, sel.n_rays
     chunks = max(1, min(MAX_CHUNKS, n_rays, MAX_HIST // max(n, 1)))
     rays_per = -(-n_rays // chunks) if n_rays else 1
-    cursor = cla.zeros(q, n * chunks, np.int32)
-    total = int(cla.sum(sel.count).get()) if n_rays else 0
-    t_ray = cla.empty(q, max(total, 1), np.int32)
-    t_w = cla.empty(q, max(total, 1), np.float32)
+    cursor = device_zeros(rt, n * chunks, np.int32)
+    total = int(cla.sum(sel.count[:n_rays]).get()) if n_rays else 0
+    t_ray = device_empty(rt, max(total, 1), np.int32)
+    t_w = device_empty(rt, max(total, 1), np.float32)
     if n_rays:
         args = dict(n_rays=n_rays, rays_per=rays_per, n_chunks=chunks, offsets=sel.offsets,
                     count=sel.count, sel_ids=sel.ids)
@@ -160,14 +160,13 @@ def _transpose_sorted(sel: Selection) -> tuple[cla.Array, cla.Array, cla.Array, 
     work-item per ray or entry; the same entries in the same order as :func:`_transpose_counted`,
     with one chunk (cursor[g] = the end of Gaussian g's segment)."""
     rt, n, n_rays = sel.plan.runtime, sel.n_gaussians, sel.n_rays
-    q = rt.queue
-    compact = exclusive_scan(rt, sel.count[:max(n_rays, 1)], cla.empty(q, max(n_rays, 1), np.int32))
+    compact = exclusive_scan(rt, sel.count[:max(n_rays, 1)], device_empty(rt, max(n_rays, 1), np.int32))
     total = last_value(compact) + last_value(sel.count[:max(n_rays, 1)]) if n_rays else 0
-    cursor = cla.zeros(q, n, np.int32)
-    t_ray, t_w = cla.empty(q, max(total, 1), np.int32), cla.empty(q, max(total, 1), np.float32)
+    cursor = device_zeros(rt, n, np.int32)
+    t_ray, t_w = device_empty(rt, max(total, 1), np.int32), device_empty(rt, max(total, 1), np.float32)
     if total:
-        keys, values = cla.empty(q, total, np.uint64), cla.empty(q, total, np.int32)
-        entry_ray, entry_w = cla.empty(q, total, np.int32), cla.empty(q, total, np.float32)
+        keys, values = device_empty(rt, total, np.uint64), device_empty(rt, total, np.int32)
+        entry_ray, entry_w = device_empty(rt, total, np.int32), device_empty(rt, total, np.float32)
         rt.launch("transpose_keys", n_rays, n_rays=n_rays, offsets=sel.offsets, count=sel.count,
                   compact=compact, sel_ids=sel.ids, sel_w=sel.weights, keys=keys, values=values,
                   entry_ray=entry_ray, entry_w=entry_w)
@@ -193,9 +192,9 @@ def ray_blocks(plan: RasterPlan, pixels: np.ndarray | None) -> tuple[int, dict]:
     (stable order) into blocks of at most TILE rays: blocks [B, 4] = (first, count, tile, 0) into
     order [P], the ray indices sorted by tile. B is a multiple of TILE, the work-group size of
     block kernels (:data:`BLOCK_GROUP`)."""
-    q = plan.runtime.queue
+    rt = plan.runtime
     if pixels is None:
-        unused = cla.zeros(q, 4, np.int32)
+        unused = device_zeros(rt, 4, np.int32)
         return plan.tiles_x * plan.tiles_y * TILE, dict(plan.ray_args(), full=1, pixels=unused,
                                                           order=unused, blocks=unused)
     tile = (pixels[:, 1] // TILE) * plan.tiles_x + pixels[:, 0] // TILE
@@ -209,8 +208,8 @@ def ray_blocks(plan: RasterPlan, pixels: np.ndarray | None) -> tuple[int, dict]:
     blocks = np.zeros((-(-len(run) // TILE) * TILE, 4), np.int64)   # padded with empty blocks
     blocks[:len(run), :3] = np.stack([first, np.minimum(TILE, starts[run] + run_len[run] - first),
                                       sorted_tile[first]], 1)
-    return len(blocks), dict(plan.ray_args(), full=0, pixels=cla.to_device(q, pixels),
-                             order=cla.to_device(q, order), blocks=cla.to_device(q, blocks.astype(np.int32)))
+    return len(blocks), dict(plan.ray_args(), full=0, pixels=to_device(rt, pixels, np.int32),
+                             order=to_device(rt, order, np.int32), blocks=to_device(rt, blocks, np.int32))
 
 
 def check_sampler(sampler: str, k) -> int:
@@ -238,26 +237,26 @@ def select(plan: RasterPlan, sampler: str = "quantile", k: int = 40, pixels=None
     if pixels is not None:
         pixels = check_pixels(pixels, plan.width, plan.height)
     n_rays = plan.width * plan.height if pixels is None else len(pixels)
-    count, t_walk, t_sel, t_rem = (cla.empty(q, max(n_rays, 1), dt)
+    count, t_walk, t_sel, t_rem = (device_empty(rt, max(n_rays, 1), dt)
                                    for dt in (np.int32, np.float32, np.float32, np.float32))
     if n_rays == 0:
-        return Selection(plan, sampler, k, pixels, cla.empty(q, 1, np.int32), cla.empty(q, 1, np.float32),
-                         cla.zeros(q, 1, np.int32), count, t_walk, t_sel, t_rem)
+        return Selection(plan, sampler, k, pixels, device_empty(rt, 1, np.int32), device_empty(rt, 1, np.float32),
+                         device_zeros(rt, 1, np.int32), count, t_walk, t_sel, t_rem)
     size, rays = ray_blocks(plan, pixels)
     if sampler == "volume":
-        offsets = cla.zeros(q, n_rays, np.int32)
+        offsets = device_zeros(rt, n_rays, np.int32)
         rt.launch("volume_count", size, local_size=BLOCK_GROUP, **rays, count=count, t_walk=t_walk)
         exclusive_scan(rt, count, offsets)
         total = last_value(offsets) + last_value(count[:n_rays])
         check_buffer(rt, 4 * total, f"the volume selection of {n_rays} rays ({total} entries)")
-        ids, weights = cla.empty(q, max(total, 1), np.int32), cla.empty(q, max(total, 1), np.float32)
+        ids, weights = device_empty(rt, max(total, 1), np.int32), device_empty(rt, max(total, 1), np.float32)
         rt.launch("volume_fill", size, local_size=BLOCK_GROUP, **rays, offsets=offsets, out_ids=ids,
                   out_w=weights,
                   t_sel=t_sel, t_rem=t_rem)
     else:
         check_buffer(rt, 4 * n_rays * k, f"the {sampler} selection of {n_rays} rays x K={k}")
-        ids, weights = cla.empty(q, n_rays * k, np.int32), cla.empty(q, n_rays * k, np.float32)
-        offsets = cla.arange(q, 0, n_rays * k, k, dtype=np.int32)
+        ids, weights = device_empty(rt, n_rays * k, np.int32), device_empty(rt, n_rays * k, np.float32)
+        offsets = cla.arange(q, 0, n_rays * k, k, dtype=np.int32, allocator=rt.pool)
         rt.launch(f"select_{sampler}", size, local_size=BLOCK_GROUP, **rays, K=k, out_ids=ids,
                   out_w=weights, count=count,
                   t_walk=t_walk, t_sel=t_sel, t_rem=t_rem)

@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pyopencl.array as cla
 
-from ..runtime import TILE, channel_layout, check_buffer, host_output, padded_vector, to_device
+from ..runtime import (TILE, channel_layout, check_buffer, device_empty, host_empty, host_output, padded_vector,
+                       to_device)
 from .binning import RasterPlan
 from .select import BLOCK_GROUP
 
@@ -20,7 +21,8 @@ def render_fused(plan: RasterPlan, features: cla.Array, channels: int,
     background [channels] or None. Returns image [H,W,channels], alpha [H,W,1] (1 - T) and
     expected depth [H,W,1] (sum of w_i z_i / (1 - T); 0 where nothing was hit), float32.
     ``out``: an optional C-contiguous float32 [H,W,cstride] host array to render into (reusing one
-    avoids the page faults of a fresh large allocation); with C == cstride the image is a view of it.
+    avoids the page faults of a fresh large allocation); the image is a view of it ([H,W,C] of
+    [H,W,cstride]), as it is of the pooled host array used without ``out``.
     """
     rt = plan.runtime
     vw, nv, cstride = channel_layout(channels)
@@ -29,17 +31,15 @@ def render_fused(plan: RasterPlan, features: cla.Array, channels: int,
     h, w = plan.height, plan.width
     check_buffer(rt, 4 * h * w * cstride, f"the fused V-Render image of {w}x{h} px x {cstride} channels "
                  "(rasterize(..., sampler='volume') renders it in chunks)")
-    image = np.empty((h, w, cstride), np.float32) if out is None else out
+    image = host_empty((h, w, cstride)) if out is None else out
     if image.shape != (h, w, cstride) or image.dtype != np.float32 or not image.flags.c_contiguous:
         raise ValueError(f"out must be a C-contiguous float32 array of shape {(h, w, cstride)}")
-    alpha = cla.empty(rt.queue, h * w, np.float32)
-    depth = cla.empty(rt.queue, h * w, np.float32)
+    alpha, depth = device_empty(rt, h * w), device_empty(rt, h * w)
     with host_output(rt, image) as image_buf:
         rt.launch("vrender", plan.tiles_x * plan.tiles_y * TILE, defines={"VW": vw, "NV": nv},
-                  local_size=BLOCK_GROUP,
-                  ranges=plan.ranges, ids=plan.ids, splats=plan.splats, features=features,
+                  local_size=BLOCK_GROUP, ranges=plan.ranges, ids=plan.ids, splats=plan.splats, features=features,
                   cstride=cstride, width=w, height=h, tiles_x=plan.tiles_x,
                   background=to_device(rt, padded_vector(background, channels, cstride)),
                   use_bg=background is not None, image=image_buf, alpha=alpha, depth=depth)
-    img = image if cstride == channels else np.ascontiguousarray(image[:, :, :channels])
-    return img, alpha.get().reshape(h, w, 1), depth.get().reshape(h, w, 1)
+    return (image[:, :, :channels], alpha.get(ary=host_empty(h * w)).reshape(h, w, 1),
+            depth.get(ary=host_empty(h * w)).reshape(h, w, 1))
