@@ -17,7 +17,7 @@ def stream_bandwidth(rt: Runtime, mib: int = 256, rounds: int = 5) -> float:
     a, b, c = (cla.zeros(rt.queue, n * 16, np.float32) for _ in range(3))
 
     def run():
-        rt.launch("triad", n, a=a, b=b, c=c, s=0.5)
+        rt.launch("triad", n, n=n, a=a, b=b, c=c, s=0.5)
         rt.queue.finish()
     return 3 * n * 64 / measure(run, rounds)["min_s"]
 
@@ -27,7 +27,7 @@ def fma_rate(rt: Runtime, work_items: int = 4096, rounds: int = 5) -> float:
     out = cla.empty(rt.queue, work_items, np.float32)
 
     def run():
-        rt.launch("fma_peak", work_items, defines={"ITERS": FMA_ITERS}, out=out, x=1.0)
+        rt.launch("fma_peak", work_items, defines={"ITERS": FMA_ITERS}, n=work_items, out=out, x=1.0)
         rt.queue.finish()
     return work_items * 8 * 16 * 2 * FMA_ITERS / measure(run, rounds)["min_s"]
 
