@@ -47,7 +47,7 @@ def coherent_selection(rt: Runtime, rays: int, k: int, n_rows: int, seed: int = 
 def bare_gather_blend(rt: Runtime, rays: int, k: int, channels: int, n_rows: int = 200_000,
                       rounds: int = 3) -> float:
     """Seconds of the blend kernel alone on a coherent [rays, k] selection of [n_rows, C] rows."""
-    vw, nv, cstride = channel_layout(channels)
+    vw, nv, cstride = channel_layout(channels, rt.gpu_shaped)
     offsets, count, ids, weights = coherent_selection(rt, rays, k, n_rows)
     features = cla.zeros(rt.queue, (n_rows, cstride), np.float32)
     image = cla.empty(rt.queue, (rays, cstride), np.float32)

@@ -69,18 +69,20 @@ def check_channels(channels: int) -> None:
         raise ValueError(f"features have {channels} channels; 1..{MAX_CHANNELS} are supported")
 
 
-def channel_layout(channels: int) -> tuple[int, int, int]:
+def channel_layout(channels: int, gpu_shaped: bool = False) -> tuple[int, int, int]:
     """(VW, NV, cstride) for ``channels`` feature channels.
 
     VW is the vector width of the kernels (16 from 16 channels up, else the next power of two),
-    NV the vectors a work-item accumulates (4, 2 or 1, whichever divides the vector count), and
-    cstride the padded row length in floats (a multiple of VW * NV).
+    NV the vectors a work-item accumulates in private memory (CPU shapes: 4, 2 or 1, whichever
+    divides the vector count, so one work-item streams up to 64 floats; GPU shapes: 1, so a
+    work-item holds 16 accumulators and more work-items share a row), and cstride the padded row
+    length in floats (a multiple of VW * NV; the same for both shapes).
     """
     if channels < 1:
         raise ValueError(f"features need at least one channel, got {channels}")
     vw = 16 if channels >= 16 else 1 << (channels - 1).bit_length()
     n_vec = -(-channels // vw)
-    nv = 4 if n_vec % 4 == 0 else 2 if n_vec % 2 == 0 else 1
+    nv = 1 if gpu_shaped else 4 if n_vec % 4 == 0 else 2 if n_vec % 2 == 0 else 1
     return vw, nv, n_vec * vw
 
 

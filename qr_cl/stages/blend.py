@@ -31,7 +31,7 @@ def blend_forward(sel: Selection, features: cla.Array, channels: int,
     Rays as in the Selection; for the full image row p = y * width + x.
     """
     rt = sel.plan.runtime
-    vw, nv, cstride = channel_layout(channels)
+    vw, nv, cstride = channel_layout(channels, rt.gpu_shaped)
     _check_rows(features, sel.n_gaussians, cstride, "features")
     check_buffer(rt, 4 * sel.n_rays * cstride, f"the image of {sel.n_rays} rays x {cstride} channels")
     image = device_empty(rt, (sel.n_rays, cstride), np.float32) if out is None else out
@@ -58,7 +58,7 @@ def blend_backward(sel: Selection, dimage: cla.Array, channels: int, out: cla.Ar
     identical bytes.
     """
     rt = sel.plan.runtime
-    vw, nv, cstride = channel_layout(channels)
+    vw, nv, cstride = channel_layout(channels, rt.gpu_shaped)
     _check_rows(dimage, sel.n_rays, cstride, "dimage")
     check_buffer(rt, 4 * sel.n_gaussians * cstride, f"dF of {sel.n_gaussians} Gaussians x {cstride} channels")
     cursor, t_ray, t_w, chunks = sel.transpose()

@@ -25,7 +25,7 @@ def render_fused(plan: RasterPlan, features: cla.Array, channels: int,
     [H,W,cstride]), as it is of the pooled host array used without ``out``.
     """
     rt = plan.runtime
-    vw, nv, cstride = channel_layout(channels)
+    vw, nv, cstride = channel_layout(channels, rt.gpu_shaped)
     if features.shape[-1] != cstride:
         raise ValueError(f"features have row length {features.shape[-1]}, expected {cstride}")
     h, w = plan.height, plan.width
