@@ -1,0 +1,375 @@
+"""Every public kernel path under oclgrind, the OpenCL device simulator (issue 12: "Prove any
+OpenCL driver"). A report of oclgrind about one of qr-cl's own kernels fails the test.
+
+A child process sees only oclgrind (a private ``OCL_ICD_VENDORS`` folder, never registered
+system-wide), picks it with ``QR_CL_DEVICE`` (oclgrind is not a CPU device, so qr-cl launches
+its GPU shapes: padded work-groups, device sorts) and renders tiny scenes through every kernel.
+Two runs, because the checks of Debian's oclgrind 21.10 (built on LLVM 14) do not all work
+together:
+
+* ``races``: out-of-bounds accesses (always checked), data races (``OCLGRIND_DATA_RACES``) and
+  API misuse (``OCLGRIND_CHECK_API``) on the usual optimized builds.
+* ``uninitialized``: uses of uninitialized values (``OCLGRIND_UNINITIALIZED``) and API misuse,
+  on unoptimized builds (``-cl-opt-disable``): on optimized code this checker stops with a fatal
+  "Unsupported instruction: freeze" (in pyopencl's scan) and flags the poison lanes of vector
+  stores that LLVM splits into scalar stores (project.cl's ``splats[i] = (float8)(...)``). It
+  ignores clEnqueueFillBuffer (pyopencl's ``zeros``), so the child fills buffers by host writes,
+  and it misreads buffers whose memory was freed and handed out again, so the child keeps every
+  device array alive.
+
+pyopencl's scans and radix sort are interpreted slowly (thousands of work-items per call, minutes
+under the race checker) and are not qr-cl's: the ``races`` run checks them once each on the
+device (:func:`exercise_pyopencl`), then both runs do them on the host; every qr-cl kernel runs on
+oclgrind. Reports about pyopencl's kernels (scan_lev1, scan_lev2, scan_final_update, the radix
+sort's) and about pyopencl's probing of vendor-specific device queries (clGetDeviceInfo ->
+CL_INVALID_VALUE) are printed, not failed on. Skipped when oclgrind's ICD library is not installed
+(Debian/Ubuntu: ``apt-get install oclgrind``).
+
+Run as a script (``python tests/test_oclgrind.py races|uninitialized``) this file is the child.
+"""
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+import time
+from collections import Counter
+from pathlib import Path
+
+import pytest
+
+ICD_LIBRARIES = ("/usr/lib/oclgrind/liboclgrind-rt-icd.so",                 # Debian, Ubuntu
+                 "/usr/lib/x86_64-linux-gnu/liboclgrind-rt-icd.so",
+                 "/usr/lib64/oclgrind/liboclgrind-rt-icd.so",
+                 "/usr/local/lib/liboclgrind-rt-icd.so")
+REPO = Path(__file__).resolve().parent.parent
+W, H = 24, 16
+MODES = {
+    "races": {"OCLGRIND_CHECK_API": "1", "OCLGRIND_DATA_RACES": "1"},
+    "uninitialized": {"OCLGRIND_CHECK_API": "1", "OCLGRIND_UNINITIALIZED": "1",
+                      "OCLGRIND_BUILD_OPTIONS": "-cl-opt-disable"},
+}
+
+
+def oclgrind_icd() -> str | None:
+    return next((p for p in ICD_LIBRARIES if os.path.exists(p)), None)
+
+
+# ---------------------------------------------------------------- the child (runs under oclgrind)
+
+def tiny_scene(n: int = 36, seed: int = 0):
+    """n random Gaussians in front of a camera at the origin (fx = fy = 20, 24x16 px) with edge
+    cases (behind the camera, either side of the near plane, one covering the image), plus a dense
+    stack of 40 faint wide Gaussians in front of pixel (5, 5): rays there blend more than 32
+    Gaussians (vrender.cl's batch). Returns float32 means, quats, scales, opacities, SH [N,16,3]."""
+    import numpy as np
+    rng = np.random.default_rng(seed)
+    means = np.c_[rng.uniform(-1, 1, (n, 2)), rng.uniform(1, 4, n)]
+    scales = np.exp(rng.uniform(-3, -1, (n, 3)))
+    opac = rng.uniform(0.1, 1, n)
+    means[:3, 2] = -1.0                                      # behind the camera
+    means[3:5] = [[0, 0, 0.0101], [0, 0, 0.0099]]            # either side of the near plane
+    means[5], scales[5] = [0, 0, 3], [5, 5, 5]               # covers the image
+    z = np.linspace(2.0, 3.0, 40)
+    stack = np.c_[(5.5 - W / 2) / 20 * z, (5.5 - H / 2) / 20 * z, z]   # projects to (5.5, 5.5)
+    means = np.r_[means, stack]
+    scales = np.r_[scales, np.full((len(z), 3), 0.3)]
+    opac = np.r_[opac, np.full(len(z), 0.08)]
+    q = rng.normal(size=(len(means), 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    sh = rng.normal(0, 0.5, (len(means), 16, 3))
+    return tuple(np.ascontiguousarray(a, np.float32) for a in (means, q, scales, opac, sh))
+
+
+def exercise() -> None:
+    """Render the tiny scene through every public kernel path (one line per path on stdout)."""
+    import numpy as np
+    import torch
+
+    import qr_cl
+    from qr_cl.app import roofline
+    from qr_cl.runtime import runtime
+
+    torch.set_num_threads(1)
+    rt = runtime()
+    print("device:", rt.device.name.strip(), "/", rt.device.platform.name.strip(), flush=True)
+    means, quats, scales, opac, sh = tiny_scene()
+    n = len(means)
+    cam = qr_cl.look_at([0, 0, 0], [0, 0, 1], [0, -1, 0], 20.0, 20.0, W, H)
+    geo = (means, quats, scales, opac)
+    rng = np.random.default_rng(1)
+    feats = rng.normal(size=(n, 5)).astype(np.float32)       # 5 channels: padded rows
+    bg = np.array([0.1, -0.2, 0.3, 0.4, 0.5], np.float32)
+    pixels = np.array([[0, 0], [5, 5], [23, 15], [12, 8], [5, 5], [17, 3]], np.int32)
+
+    densest = 0
+    for sampler in ("volume", "quantile", "topk"):
+        for px in (None, pixels):
+            for background in (None, bg):
+                f = torch.from_numpy(feats).requires_grad_(True)
+                img, alpha, meta = qr_cl.rasterize(*geo, f, cam.viewmat, cam.K, W, H, sampler=sampler,
+                                                   k=4, background=background, pixels=px)
+                img.sum().backward()
+                assert f.grad is not None and bool(torch.isfinite(f.grad).all())
+                if sampler == "volume":
+                    densest = max(densest, int(meta["selection"].host()["count"].max()))
+                print(f"rasterize {sampler} pixels={px is not None} background={background is not None}"
+                      " forward+backward: ok", flush=True)
+    assert densest > 32, f"the dense stack must give a ray more than 32 Gaussians, got {densest}"
+
+    for background in (None, bg):
+        img, alpha, meta = qr_cl.render_volume_fused(*geo, feats, cam.viewmat, cam.K, W, H,
+                                                     background=background)
+        ref, ref_alpha, _ = qr_cl.rasterize(*geo, feats, cam.viewmat, cam.K, W, H, sampler="volume",
+                                            background=background)
+        assert np.abs(img.numpy() - ref.numpy()).max() < 1e-4, "fused V-Render != volume selection"
+        assert np.abs(alpha.numpy() - ref_alpha.numpy()).max() < 1e-5
+        print(f"render_volume_fused background={background is not None}: ok "
+              f"(densest ray {densest} Gaussians)", flush=True)
+    wide = rng.normal(size=(n, 40)).astype(np.float32)       # several channel chunks
+    qr_cl.render_volume_fused(*geo, wide, cam.viewmat, cam.K, W, H)
+    print("render_volume_fused 40 channels: ok", flush=True)
+
+    for degree in (1, 3):
+        qr_cl.rasterize(*geo, sh, cam.viewmat, cam.K, W, H, sh_degree=degree)
+        qr_cl.render_volume_fused(*geo, sh, cam.viewmat, cam.K, W, H, sh_degree=degree)
+        print(f"RGB from SH degree {degree}: ok", flush=True)
+
+    roofline.FMA_ITERS = 16                    # fma_peak's loop length (passed as -DITERS)
+    roofline.fma_rate(rt, work_items=16, rounds=1)
+    roofline.stream_bandwidth(rt, mib=1, rounds=1)
+    print("roofline fma_peak, triad: ok", flush=True)
+    rt.queue.finish()
+
+
+def exercise_pyopencl() -> None:
+    """pyopencl's kernels that qr-cl uses, once each on the device (the ``races`` run): the
+    exclusive "a+b" scan (binning, volume offsets, transposes), an inclusive "max(a, b)" scan
+    (the GPU-shaped transpose) and the radix sort of binning, checked against numpy."""
+    import numpy as np
+    import pyopencl.array as cla
+    from pyopencl.scan import InclusiveScanKernel
+
+    from qr_cl.runtime import exclusive_scan, runtime
+    from qr_cl.stages.binning import radix_sorter
+
+    rt = runtime()
+    q = rt.queue
+    rng = np.random.default_rng(2)
+    x = rng.integers(0, 9, 2000).astype(np.int32)
+    got = exclusive_scan(rt, cla.to_device(q, x), cla.empty(q, len(x), np.int32)).get()
+    assert np.array_equal(got, np.cumsum(x) - x)
+    y = cla.to_device(q, x)
+    InclusiveScanKernel(rt.context, np.int32, "max(a, b)", "0")(y)
+    assert np.array_equal(y.get(), np.maximum.accumulate(x))
+    tiles, depths = rng.integers(0, 8, 1000), rng.integers(0, 2 ** 32, 1000)
+    keys = (tiles.astype(np.uint64) << np.uint64(32)) | depths.astype(np.uint64)
+    values = np.arange(1000, dtype=np.int32)
+    (sk, sv), _ = radix_sorter(rt.context)(cla.to_device(q, keys), cla.to_device(q, values), key_bits=35)
+    order = np.argsort(keys, kind="stable")
+    assert np.array_equal(sk.get(), keys[order]) and np.array_equal(sv.get(), values[order])
+    print("pyopencl exclusive scan, max scan, radix sort on the device: ok", flush=True)
+
+
+HOST_SCAN_OPS = {"a+b": "add", "max(a,b)": "maximum", "min(a,b)": "minimum"}
+
+
+def record_scan_and_sort_specs() -> None:
+    """Let pyopencl's scan kernels and radix sorts remember their scan expression / sort key, for
+    :func:`use_host_scan_sort` (installed first: qr-cl caches the kernels it builds)."""
+    from pyopencl.algorithm import RadixSort
+    from pyopencl.scan import _LegacyScanKernelBase
+    scan_init, radix_init = _LegacyScanKernelBase.__init__, RadixSort.__init__
+
+    def scan_kernel_init(self, ctx, dtype, scan_expr, neutral=None, *args, **kwargs):
+        scan_init(self, ctx, dtype, scan_expr, neutral, *args, **kwargs)
+        self.host_scan = (HOST_SCAN_OPS.get(scan_expr.replace(" ", "")), neutral)
+
+    def radix_sort_init(self, context, arguments, key_expr, sort_arg_names, *args, **kwargs):
+        radix_init(self, context, arguments, key_expr, sort_arg_names, *args, **kwargs)
+        key = re.fullmatch(r"\s*(\w+)\s*\[\s*i\s*\]\s*", key_expr)
+        self.host_key = key.group(1) if key else None
+
+    _LegacyScanKernelBase.__init__, RadixSort.__init__ = scan_kernel_init, radix_sort_init
+
+
+def use_host_scan_sort(uninitialized: bool) -> None:
+    """Do pyopencl's scans ("a+b", "max(a, b)") and radix sorts (key ``name[i]``) on the host
+    (both runs; pyopencl's own kernels are checked once by :func:`exercise_pyopencl`; other scans
+    and sorts still run on the device). ``uninitialized``: also fill buffers by host writes and
+    keep every device array alive (no buffer is freed and reused), see the module docstring."""
+    import numpy as np
+    import pyopencl as cl
+    import pyopencl.array as cla
+    from pyopencl.algorithm import RadixSort
+    from pyopencl.scan import ExclusiveScanKernel, _LegacyScanKernelBase
+    scan_call, radix_call = _LegacyScanKernelBase.__call__, RadixSort.__call__
+
+    def scan(self, input_ary, output_ary=None, allocator=None, queue=None):
+        op, neutral = getattr(self, "host_scan", (None, None))
+        exclusive = isinstance(self, ExclusiveScanKernel)
+        if op is None or (exclusive and not str(neutral).strip().lstrip("-").isdigit()):
+            return scan_call(self, input_ary, output_ary, allocator, queue)
+        out = input_ary if output_ary is None else output_ary
+        if isinstance(out, str):
+            out = cla.empty_like(input_ary)
+        x = input_ary.get(queue=queue)
+        y = getattr(np, op).accumulate(x, dtype=x.dtype) if x.size else x
+        if exclusive and x.size:
+            y = np.concatenate([np.array([int(neutral)], x.dtype), y[:-1]])
+        out.set(np.ascontiguousarray(y), queue=queue)
+        return out
+
+    def radix_sort(self, *args, queue=None, allocator=None, key_bits=None, wait_for=None):
+        names = [a.name for a in self.arguments]
+        if getattr(self, "host_key", None) not in names:
+            return radix_call(self, *args, queue=queue, allocator=allocator, key_bits=key_bits,
+                              wait_for=wait_for)
+        keys = args[names.index(self.host_key)].get()
+        if key_bits is not None and key_bits < 8 * keys.dtype.itemsize:
+            keys = keys & keys.dtype.type((1 << key_bits) - 1)
+        order = np.argsort(keys, kind="stable")
+        queue = queue or args[0].queue
+        out = tuple(cla.to_device(queue, np.ascontiguousarray(args[names.index(s)].get()[order]),
+                                  allocator=allocator or args[0].allocator)
+                    for s in self.sort_arg_names)
+        return out, cl.enqueue_marker(queue)
+
+    def fill(queue, mem, pattern, size, offset=0, wait_for=None):
+        pat = np.frombuffer(np.ascontiguousarray(pattern).tobytes(), np.uint8)
+        return cl.enqueue_copy(queue, mem, np.resize(pat, size), dst_offset=offset,
+                               wait_for=wait_for, is_blocking=True)
+
+    kept, array_init = [], cla.Array.__init__
+
+    def keep_array(self, *args, **kwargs):
+        array_init(self, *args, **kwargs)
+        kept.append(self)
+
+    _LegacyScanKernelBase.__call__, RadixSort.__call__ = scan, radix_sort
+    if uninitialized:
+        cl.enqueue_fill = fill
+        cla.Array.__init__ = keep_array
+
+
+# ------------------------------------------------------------------------ oclgrind's reports
+
+def qr_cl_kernel_names() -> set[str]:
+    names = set()
+    for path in (REPO / "kernels").glob("*.cl"):
+        names.update(re.findall(r"__kernel\s+void\s+(\w+)\s*\(", path.read_text()))
+    return names
+
+
+#: First lines of oclgrind's messages ("Invalid read of size 4 at global memory address ...",
+#: "Read-write data race at ...", "Uninitialized value written to ...", "Controlflow depends on
+#: uninitialized value", "OCLGRIND FATAL ERROR (...)", "Oclgrind - OpenCL runtime error detected").
+OCLGRIND_HEADER = re.compile(r"(Invalid |Uninitiali[sz]ed |Controlflow depends|\S+(-\S+)? data race|"
+                             r"OCLGRIND|Oclgrind|Unsupported |Undefined external|Work-group divergence)")
+
+
+def reports(stderr: str) -> list[str]:
+    """oclgrind's messages on ``stderr`` (where it prints them, between the child's own output):
+    a first line at column 0 matching :data:`OCLGRIND_HEADER`, then tab-indented lines ("Kernel:
+    name", "Entity: ...", "First entity: ...", "Function: clXxx", "Error: CL_...", instructions,
+    source lines; blank lines inside a message hold a tab). A lone "OCLGRIND FATAL ERROR" line
+    heads the message after it; "Oclgrind: N errors generated" notes are left out."""
+    out, cur = [], None
+    for line in stderr.splitlines():
+        if line.startswith(("\t", " ")):
+            if cur is not None:
+                cur.append(line.rstrip())
+            continue
+        if cur is not None:
+            out.append(cur)
+        cur = [line.rstrip()] if OCLGRIND_HEADER.match(line) else None
+    if cur is not None:
+        out.append(cur)
+    merged = []
+    for lines in out:
+        if merged and len(merged[-1]) == 1 and merged[-1][0].startswith("OCLGRIND FATAL ERROR"):
+            merged[-1] += lines
+        else:
+            merged.append(lines)
+    return ["\n".join(lines) for lines in merged
+            if not (lines[0].startswith("Oclgrind: ") and "errors generated" in lines[0])]
+
+
+def is_api_report(report: str) -> bool:
+    return report.startswith("Oclgrind - OpenCL runtime error detected")
+
+
+def kernel_of(report: str) -> str | None:
+    m = re.search(r"^\s*Kernel:\s*(\w+)", report, re.M)
+    return m.group(1) if m else None
+
+
+def is_pyopencl_probe(report: str) -> bool:
+    """pyopencl's probing of vendor-specific device queries (e.g. the NVIDIA compute capability
+    when it checks for a build cache), answered CL_INVALID_VALUE and caught by pyopencl."""
+    return ("Function: clGetDeviceInfo" in report and "CL_INVALID_VALUE" in report
+            and "'param_name'" in report)
+
+
+def summary(reports: list[str]) -> str:
+    """One line per kind of report (address and entity left out) with its count."""
+    def kind(r):
+        lines = r.splitlines()
+        head = re.sub(r"0x[0-9a-f]+", "ADDR", lines[0])
+        where = " | ".join(line.strip() for line in lines[1:] if re.match(
+            r"\s*(Kernel:|Function:|Error:|At line|store|load|tail call|call|%)", line))
+        return f"{head} | {where}"
+    return "\n".join(f"{n:5d} x {k}" for k, n in Counter(map(kind, reports)).most_common())
+
+
+def run_child(mode: str, tmp_path: Path, timeout: float = 600):
+    vendors = tmp_path / "vendors"
+    vendors.mkdir()
+    (vendors / "oclgrind.icd").write_text(oclgrind_icd() + "\n")
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("OCLGRIND_", "PYOPENCL_CTX"))}
+    env.update(MODES[mode], OCL_ICD_VENDORS=str(vendors), QR_CL_DEVICE="oclgrind:0",
+               OCLGRIND_MAX_ERRORS="1000000",
+               PYOPENCL_NO_CACHE="1",     # binaries cached by another run ignore BUILD_OPTIONS
+               OMP_NUM_THREADS="1",
+               PYTHONPATH=os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")])))
+    start = time.perf_counter()
+    proc = subprocess.run([sys.executable, str(Path(__file__).resolve()), mode], cwd=tmp_path, env=env,
+                          capture_output=True, text=True, timeout=timeout)
+    return proc, time.perf_counter() - start
+
+
+# ---------------------------------------------------------------------------------------- the test
+
+@pytest.mark.parametrize("mode", list(MODES))
+def test_qr_cl_kernels_are_clean_under_oclgrind(mode, tmp_path):
+    if oclgrind_icd() is None:
+        pytest.skip("oclgrind is not installed (apt-get install oclgrind)")
+    proc, seconds = run_child(mode, tmp_path)
+    print(f"[{mode}] child ran {seconds:.0f} s:\n{proc.stdout}")
+    assert proc.returncode == 0, f"child failed (rc {proc.returncode}):\n{proc.stdout}\n{proc.stderr[-8000:]}"
+    assert "device: Oclgrind" in proc.stdout, proc.stdout
+    ours = qr_cl_kernel_names()
+    mine, theirs = [], []
+    for r in reports(proc.stderr):
+        if is_api_report(r):
+            (theirs if is_pyopencl_probe(r) else mine).append(r)
+        else:
+            (mine if kernel_of(r) is None or kernel_of(r) in ours else theirs).append(r)
+    if theirs:
+        print(f"[{mode}] oclgrind's reports about pyopencl's own kernels and queries "
+              f"({len(theirs)}, not failed on):\n{summary(theirs)}")
+        examples = {}
+        for r in theirs:
+            examples.setdefault((kernel_of(r), r.splitlines()[0][:30]), r)
+        print("\n\n".join(examples.values()))
+    assert not mine, (f"oclgrind reports about qr-cl's kernels ({len(mine)}):\n{summary(mine)}\n\n"
+                      + "\n\n".join(mine[:5]))
+
+
+if __name__ == "__main__":
+    record_scan_and_sort_specs()
+    if sys.argv[1:] == ["races"]:
+        exercise_pyopencl()
+    use_host_scan_sort(uninitialized=sys.argv[1:] == ["uninitialized"])
+    exercise()
