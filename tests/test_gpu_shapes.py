@@ -60,3 +60,22 @@ def test_gpu_shaped_render_equals_cpu_shaped(random_scene, monkeypatch, sampler)
         out[launch] = [t.detach().numpy().tobytes() for t in (img, alpha, sub, feats.grad, fused, rgb)]
         out[launch].append(meta["flatten_ids"].tobytes())
     assert out["gpu"] == out["cpu"]
+
+
+def test_pyopencl_scan_and_sort_are_checked_on_the_device(monkeypatch):
+    """pyopencl's scan has a global-memory race (a local barrier where a global one is needed,
+    reported by oclgrind): GPU-shaped runtimes trust its scan and RadixSort only after checking
+    them against numpy once, and scan and sort on the host otherwise."""
+    from qr_cl.runtime import exclusive_scan, memory, to_device
+    from qr_cl.stages import binning
+    rt = runtime()
+    assert memory.device_scan_works(rt.context) and binning.device_sort_works(rt.context)   # PoCL
+    monkeypatch.setenv("QR_CL_LAUNCH", "gpu")
+    monkeypatch.setattr(memory, "device_scan_works", lambda context: False)
+    monkeypatch.setattr(binning, "device_sort_works", lambda context: False)
+    values = np.random.default_rng(0).integers(0, 9, 1000).astype(np.int32)
+    np.testing.assert_array_equal(exclusive_scan(rt, to_device(rt, values, np.int32)).get(),
+                                  np.cumsum(values) - values)
+    keys = np.random.default_rng(1).integers(0, 1 << 40, 1000).astype(np.uint64)
+    k, v = binning.sort_pairs(rt, to_device(rt, keys, np.uint64), to_device(rt, np.arange(1000), np.int32), 40)
+    np.testing.assert_array_equal(k.get(), np.sort(keys, kind="stable"))

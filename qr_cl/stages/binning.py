@@ -7,6 +7,7 @@ every channel count and sampler. Twin: :mod:`qr_cl.stages.binning_ref`.
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -88,15 +89,33 @@ def radix_sorter(context: cl.Context) -> RadixSort:
                      sort_arg_names=["keys", "values"], key_dtype=np.uint64)
 
 
+@lru_cache(maxsize=None)
+def device_sort_works(context: cl.Context) -> bool:
+    """Whether pyopencl's RadixSort sorts 100k random (key, value) pairs on this context's device
+    as numpy's stable argsort does (checked once; its scans share pyopencl's scan race, see
+    :func:`qr_cl.runtime.memory.device_scan_works`)."""
+    queue = cl.CommandQueue(context)
+    rng = np.random.default_rng(0)
+    keys = rng.integers(0, 1 << 40, 100_000).astype(np.uint64)
+    values = np.arange(len(keys), dtype=np.int32)
+    (k, v), _ = radix_sorter(context)(cla.to_device(queue, keys), cla.to_device(queue, values), key_bits=40)
+    order = np.argsort(keys, kind="stable")
+    ok = np.array_equal(k.get(), keys[order]) and np.array_equal(v.get(), values[order])
+    if not ok:
+        warnings.warn("pyopencl's RadixSort sorted wrongly on this device; qr-cl sorts on the host")
+    return ok
+
+
 def sort_pairs(rt: Runtime, keys: cla.Array, values: cla.Array, key_bits: int) -> tuple[cla.Array, cla.Array]:
     """Sort (key, value) pairs by the low ``key_bits`` bits of the uint64 keys.
 
     On a CPU-shaped runtime the host is the device: numpy's stable argsort on the mapped data is
     much faster than pyopencl's GPU-style RadixSort there (see bench/test_bench_binning.py). On
     GPU-shaped ones (:attr:`qr_cl.runtime.Runtime.gpu_shaped`) pyopencl's RadixSort runs on the
-    device; both are stable, so the order is the same.
+    device, once :func:`device_sort_works` has checked it there; both are stable, so the order is
+    the same.
     """
-    if not rt.gpu_shaped:
+    if not rt.gpu_shaped or not device_sort_works(rt.context):
         host_keys = _get(keys)
         order = np.argsort(host_keys, kind="stable")
         sorted_keys = to_device(rt, np.take(host_keys, order, out=host_empty(keys.shape, keys.dtype)), np.uint64)
