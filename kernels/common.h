@@ -102,13 +102,22 @@ static inline int2 block_rays(int b, int full, __global const int2 *ranges, __gl
     return ranges[tile];
 }
 
-/* splat_alpha of splat s at the lanes' pixel centres, as vectors (the same expression). */
-static inline lanef block_alpha(float8 s, lanef px, lanef py) {
+/* The Gaussian exponent sigma of splat s at the lanes' pixel centres (splat_sigma, as vectors). */
+static inline lanef block_sigma(float8 s, lanef px, lanef py) {
     const lanef dx = s.s0 - px, dy = s.s1 - py;
-    const lanef sig = 0.5f * (s.s2 * dx * dx + s.s4 * dy * dy) + s.s3 * dx * dy;
+    return 0.5f * (s.s2 * dx * dx + s.s4 * dy * dy) + s.s3 * dx * dy;
+}
+
+/* splat_alpha of splat s from its exponents sig, as vectors (the same expression). */
+static inline lanef block_alpha(float8 s, lanef sig) {
     const lanef a = fmin((lanef)(ALPHA_MAX), s.s5 * exp(-sig));
     return select(a, (lanef)(0.f), (sig < 0.f) | (a < ALPHA_MIN));
 }
+
+/* Whether splat s may be blended in some lane: an exponent at most sigma_max = ln(opacity /
+   ALPHA_MIN) (s.s7, from project.cl) plus a margin far above float rounding. When no lane is
+   below it, every alpha would be skipped and the walk skips the exp. */
+#define MAY_BLEND(s, sig) any((sig) <= (s).s7 + 1e-3f)
 
 /* The V-Render walk of a block: for each Gaussian g (splat s, list position i_) of the list, in
    depth order, that some lane blends, runs the statements ... with lanei use (-1 in the lanes that
@@ -123,7 +132,9 @@ static inline lanef block_alpha(float8 s, lanef px, lanef py) {
         for (int i_ = range.x; i_ < range.y && !all(done_); i_++) { \
             const int g = ids[i_]; \
             const float8 s = splats[g]; \
-            const lanef a = block_alpha(s, px, py); \
+            const lanef sig_ = block_sigma(s, px, py); \
+            if (!MAY_BLEND(s, sig_)) continue; \
+            const lanef a = block_alpha(s, sig_); \
             lanei use = (a > 0.f) & ~done_; \
             if (!any(use)) continue; \
             const lanef next_T = T * (1.f - a); \

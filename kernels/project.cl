@@ -13,7 +13,7 @@ static inline int tile_index(float v, int tiles) {
     return (int)fmin(fmax(v / TILE, 0.f), (float)tiles);
 }
 
-/* Outputs per Gaussian: splat = (mean2d.x, mean2d.y, conic a, b, c, opacity, depth, 0),
+/* Outputs per Gaussian: splat = (mean2d.x, mean2d.y, conic a, b, c, opacity, depth, sigma_max),
    radius in pixels (0 = culled), tile rectangle [x0, y0, x1, y1) and tiles touched. */
 __kernel void project(const int n,
                       __global const float *means,      /* [N,3] world */
@@ -83,13 +83,22 @@ __kernel void project(const int n,
     float radius = ceil(3.f * sqrt(lambda1));
     float2 mean2d = (float2)(fx * p.x / p.z + cx, fy * p.y / p.z + cy);
     if (!(isfinite(mean2d.x) && isfinite(mean2d.y))) return;   /* projects beyond FLT_MAX px */
-    int4 rect = (int4)(tile_index(mean2d.x - radius, tiles_x), tile_index(mean2d.y - radius, tiles_y),
-                       tile_index(mean2d.x + radius + TILE - 1, tiles_x),
-                       tile_index(mean2d.y + radius + TILE - 1, tiles_y));
+    /* Opacity-aware extent: a pixel is blended only where opacity exp(-sigma) >= ALPHA_MIN, i.e.
+       sigma <= sigma_max = ln(opacity / ALPHA_MIN), inside the ellipse d^T Sigma^-1 d <= 2 sigma_max
+       whose bounding box has half-sides sqrt(2 sigma_max Sigma_xx) and sqrt(2 sigma_max Sigma_yy).
+       Tiles are binned within that box (rounded up, plus a pixel against float rounding) where it
+       is smaller than the 3-sigma square: the same pixels are blended, from fewer tile lists. */
+    const float opacity = opacities[i];
+    if (!(opacity >= ALPHA_MIN)) return;                        /* never blended */
+    const float sigma_max = log(opacity / ALPHA_MIN);
+    const float2 ext = fmin((float2)(radius), ceil(sqrt(2.f * sigma_max * (float2)(c00, c11))) + 1.f);
+    int4 rect = (int4)(tile_index(mean2d.x - ext.x, tiles_x), tile_index(mean2d.y - ext.y, tiles_y),
+                       tile_index(mean2d.x + ext.x + TILE - 1, tiles_x),
+                       tile_index(mean2d.y + ext.y + TILE - 1, tiles_y));
     int touched = (rect.z - rect.x) * (rect.w - rect.y);
     if (touched <= 0) return;
 
-    splats[i] = (float8)(mean2d.x, mean2d.y, c11 * inv, -c01 * inv, c00 * inv, opacities[i], p.z, 0.f);
+    splats[i] = (float8)(mean2d.x, mean2d.y, c11 * inv, -c01 * inv, c00 * inv, opacity, p.z, sigma_max);
     radii[i] = (int)fmin(radius, RADIUS_MAX);
     rects[i] = rect;
     tiles_touched[i] = touched;

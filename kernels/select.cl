@@ -33,7 +33,10 @@ __kernel void select_quantile(BLOCK_ARGS, const int K, __global int *out_ids, __
     lanei k = (lanei)(0), n = (lanei)(0), done = row < 0;
     for (int i = range.x; i < range.y && !all(done); i++) {
         const int g = ids[i];
-        const lanef a = block_alpha(splats[g], px, py);
+        const float8 s = splats[g];
+        const lanef sig = block_sigma(s, px, py);
+        if (!MAY_BLEND(s, sig)) continue;
+        const lanef a = block_alpha(s, sig);
         const lanei use = (a > 0.f) & ~done;
         if (!any(use)) continue;
         const lanef T_test = T * (1.f - a);

@@ -21,17 +21,19 @@ RADIUS_MAX = project_ref.RADIUS_MAX
 def extreme_scene():
     """(means, quats, scales, opacities, expectation per Gaussian) for a camera at the origin
     looking down +z (fx = 80 px, world axes = camera axes, so axis-aligned Gaussians keep an
-    exactly diagonal 2D covariance): "drawn" (covers the whole image, radius RADIUS_MAX),
-    "culled", or "normal"."""
+    exactly diagonal 2D covariance): "drawn" (covers the whole image, radius RADIUS_MAX), "band"
+    (radius RADIUS_MAX, binned across the whole image along its long axis only), "culled", or
+    "normal"."""
     near_z = 0.0100001                     # just inside the near plane (0.01)
     rows = [
         # (mean, scale, expectation)
         # radius ~6e10 px (float32: mid*mid - det = inf - inf; the tile rectangle's upper corner
         # 3.7e9 tiles is beyond INT_MAX): covers the image
         ((0, 0, 4), (1e9, 1e9, 1e9), "drawn"),
-        # anisotropic: float32 radius +inf (mid * mid overflows), float64 ~6e10: covers the image
-        ((0, 0, 4), (1e9, 1e-3, 1e-3), "drawn"),
-        ((0.2, -0.1, 3), (1e-3, 1e9, 1e-3), "drawn"),
+        # anisotropic: float32 radius +inf (mid * mid overflows), float64 ~6e10: a band of tiles
+        # across the image (the opacity-aware extent of the thin axis is a few px)
+        ((0, 0, 4), (1e9, 1e-3, 1e-3), "band"),
+        ((0.2, -0.1, 3), (1e-3, 1e9, 1e-3), "band"),
         # projected mean 5e10 px to the right, radius 6e10 px: still covers the image
         ((5e10 * 4 / 80, 0, 4), (1e9, 1e9, 1e9), "drawn"),
         # projected means ~8e29 px (near-zero depth, inside the near plane): culled
@@ -81,6 +83,10 @@ def test_extreme_gaussians_are_culled_or_drawn_as_the_twin_says(extreme):
             assert got == want, f"Gaussian {i} ({what}): kernel {got}, twin {want}"
         if what == "drawn":
             assert got == (RADIUS_MAX, (0, 0, tiles_x, tiles_y), tiles_x * tiles_y), (i, got)
+        if what == "band":
+            x0, y0, x1, y1 = got[1]
+            assert got[0] == RADIUS_MAX and 0 < got[2] < tiles_x * tiles_y, (i, got)
+            assert (x0, x1) == (0, tiles_x) or (y0, y1) == (0, tiles_y), (i, got)
         if what == "culled":
             assert got == (0, (0, 0, 0, 0), 0), (i, got)
 

@@ -24,7 +24,8 @@ from .project import tile_grid
 class RasterPlan:
     """Everything the per-pixel kernels need, on the device.
 
-    splats [N,8] float32 (mean2d x, y in px; conic a, b, c; opacity; depth; 0), radii [N] int32
+    splats [N,8] float32 (mean2d x, y in px; conic a, b, c; opacity; depth; sigma_max =
+    ln(opacity / ALPHA_MIN), the exponent beyond which its alpha is skipped), radii [N] int32
     (0 = culled), ranges [tiles, 2] int32 [start, end) into ids, ids [max(M,1)] int32 depth-sorted
     Gaussian ids per tile (M = n_keys; one unused entry when M = 0), width/height in px.
     Needs N >= 1 (callers handle empty scenes).

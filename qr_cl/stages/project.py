@@ -19,7 +19,7 @@ def project(rt: Runtime, means: cla.Array, quats: cla.Array, scales: cla.Array, 
     """Run project.cl on device arrays means [N,3], quats [N,4] (unit w,x,y,z), scales [N,3],
     opacities [N] (activated), for viewmat [4,4] world-to-camera and K [3,3] (px).
 
-    Returns splats [N,8] (mean2d x, y px; conic a, b, c; opacity; depth; 0), radii [N] int32
+    Returns splats [N,8] (mean2d x, y px; conic a, b, c; opacity; depth; sigma_max), radii [N] int32
     (0 = culled), rects [N,4] int32 tile rectangle [x0, y0, x1, y1) and tiles_touched [N] int32.
     """
     n = means.shape[0]

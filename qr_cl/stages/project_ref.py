@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..runtime import TILE
+from ..runtime import ALPHA_MIN, TILE
 from ..scene.gaussians import quat_to_rotmat
 from .project import tile_grid
 
@@ -16,7 +16,8 @@ RADIUS_MAX = 2 ** 30
 def project(means, quats, scales, opacities, viewmat, K, width: int, height: int,
             near: float = 0.01, far: float = 1e10) -> dict[str, np.ndarray]:
     """EWA projection (project.cl). Returns means2d [N,2], conics [N,3], depths [N], radii [N]
-    (0 = culled), rects [N,4] tile rectangle [x0, y0, x1, y1), tiles_touched [N], opacities [N]."""
+    (3-sigma, px; 0 = culled, also when the opacity is below ALPHA_MIN), rects [N,4] tile
+    rectangle [x0, y0, x1, y1) of the opacity-aware extent, tiles_touched [N], opacities [N]."""
     means, quats, scales = (np.asarray(a, np.float64) for a in (means, quats, scales))
     view, K = np.asarray(viewmat, np.float64), np.asarray(K, np.float64)
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
@@ -39,12 +40,15 @@ def project(means, quats, scales, opacities, viewmat, K, width: int, height: int
         mid = 0.5 * (a + c)
         radius = np.ceil(3 * np.sqrt(mid + np.sqrt(np.fmax(0.1, mid * mid - det))))
         mean2d = np.stack([fx * x / z + cx, fy * y / z + cy], -1)
+        opacity = np.asarray(opacities, np.float64)
+        sigma_max = np.log(opacity / ALPHA_MIN)              # blended where sigma <= sigma_max
+        ext = np.fmin(radius[:, None], np.ceil(np.sqrt(2 * sigma_max[:, None] * np.stack([a, c], -1))) + 1)
         tiles = np.array(tile_grid(width, height))
-        lo = np.clip(np.trunc((mean2d - radius[:, None]) / TILE), 0, tiles)
-        hi = np.clip(np.trunc((mean2d + radius[:, None] + TILE - 1) / TILE), 0, tiles)
+        lo = np.clip(np.trunc((mean2d - ext) / TILE), 0, tiles)
+        hi = np.clip(np.trunc((mean2d + ext + TILE - 1) / TILE), 0, tiles)
         touched = np.prod(hi - lo, axis=1)
         finite = np.all(np.abs(mean2d) <= np.finfo(np.float32).max, axis=1)   # as float32
-        visible = (z >= near) & (z <= far) & (det > 0) & finite & (touched > 0)
+        visible = (z >= near) & (z <= far) & (det > 0) & finite & (opacity >= ALPHA_MIN) & (touched > 0)
         conics = np.stack([c / det, -b / det, a / det], -1)
     zero = ~visible
     return {"means2d": np.where(zero[:, None], 0, mean2d), "conics": np.where(zero[:, None], 0, conics),
