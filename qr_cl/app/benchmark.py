@@ -32,7 +32,7 @@ from ..scene import Gaussians, load_ply, look_at, orbit_cameras
 from ..stages import RasterPlan, bin_and_sort, blend_backward, blend_forward, project, render_fused, select
 from . import roofline
 from .images import plt  # pyplot on the file-only Agg backend
-from .procedural import procedural_scene
+from .procedural import dense_room, procedural_scene
 from .timing import measure
 
 REPORT_VERSION = 1
@@ -68,6 +68,12 @@ def synthetic_scene(n: int, width: int, height: int) -> BenchScene:
     """The procedural scene with ``n`` Gaussians and an orbit camera."""
     g = procedural_scene(n)
     return BenchScene(f"synthetic-{n // 1000}k", g, orbit_cameras(g.means, 8, width, height)[1])
+
+
+def dense_scene(n: int, width: int, height: int) -> BenchScene:
+    """:func:`qr_cl.app.procedural.dense_room` with ``n`` Gaussians and its camera."""
+    g, cam = dense_room(n, width=width, height=height)
+    return BenchScene(f"dense-room-{n // 1000}k", g, cam)
 
 
 def layered_scene(depth: int, width: int, height: int) -> BenchScene:
@@ -275,15 +281,17 @@ def _config(mode: str) -> dict:
     """Sweep sizes for mode "smoke" (seconds; the default test run), "quick" (< 3 min) or "full"."""
     if mode == "smoke":
         return {"resolutions": [(64, 48), (32, 24)], "ks": [10], "cs": [3, 16], "k_sweep_c": 16,
-                "c_sweep_k": 10, "synthetic": [1000], "layers": [8, 16, 32], "layer_cs": [4, 16], "rounds": 1,
+                "c_sweep_k": 10, "synthetic": [1000], "dense": 5000, "layers": [8, 16, 32], "layer_cs": [4, 16],
+                "rounds": 1,
                 "looped_rounds": 1, "numpy_rounds": 1, "real": False}
     if mode == "quick":
         return {"resolutions": [(640, 480)], "ks": [10, 40], "cs": [3, 64, 512], "k_sweep_c": 512,
-                "c_sweep_k": 40, "synthetic": [], "layers": [32, 128, 512], "layer_cs": [16, 64, 256],
+                "c_sweep_k": 40, "synthetic": [], "dense": 300_000, "layers": [32, 128, 512],
+                "layer_cs": [16, 64, 256],
                 "rounds": 3, "looped_rounds": 1, "numpy_rounds": 1, "real": True}
     return {"resolutions": [(640, 480), (1280, 960)], "ks": [5, 10, 20, 40, 50],
             "cs": [3, 6, 16, 64, 512, 1024], "k_sweep_c": 512, "c_sweep_k": 40,
-            "synthetic": [10_000, 100_000, 1_000_000], "layers": [16, 64, 256, 1000],
+            "synthetic": [10_000, 100_000, 1_000_000], "dense": 300_000, "layers": [16, 64, 256, 1000],
             "layer_cs": [16, 64, 256, 1024], "rounds": 5, "looped_rounds": 2, "numpy_rounds": 1,
             "real": True}
 
@@ -305,6 +313,7 @@ def run_sweep(mode: str, out: Path, data: Path | None = None) -> dict:
         per_scene = 2 + 3 * len(cfg["ks"]) * 3 + len(cfg["cs"]) * (1 + 3 * 3 + 3) if res == main_res else 2 + 4 * 3 + 4
         n_jobs += per_scene * (1 if quick else len(scenes))
     n_jobs += len(cfg["synthetic"]) * 8 + (len(cfg["layers"]) + len(cfg["layer_cs"])) * 4 * 2 + 6
+    n_jobs += 2 + 2 + 3 * len(SAMPLERS) * len(cfg["ks"]) + 2 * len(cfg["ks"]) + 1
     with tqdm(total=n_jobs, desc="qr-cl bench", unit="run") as bar:
         sweep = Sweep(cfg["rounds"], bar)
         sweep.limits = {"bandwidth_bytes_s": roofline.stream_bandwidth(rt, 64 if quick else 256),
@@ -330,6 +339,17 @@ def run_sweep(mode: str, out: Path, data: Path | None = None) -> dict:
                     sweep.fused(scene, plan, cfg["k_sweep_c"])
                     for sampler in SAMPLERS:
                         sweep.sampler(scene, plan, sampler, cfg["c_sweep_k"], cfg["k_sweep_c"])
+        scene = dense_scene(cfg["dense"], *main_res)     # depth complexity: a dense room
+        plan = sweep.plan(scene)
+        for c in (3, cfg["k_sweep_c"]):
+            sweep.fused(scene, plan, c)
+        for sampler in SAMPLERS:
+            for k in cfg["ks"] if sampler != "volume" else cfg["ks"][:1]:
+                sweep.sampler(scene, plan, sampler, k, cfg["k_sweep_c"])
+        for k in cfg["ks"]:
+            sweep.end_to_end(scene, "quantile", k, cfg["k_sweep_c"])
+            sweep.end_to_end(scene, "stratified", k, cfg["k_sweep_c"])
+        sweep.end_to_end(scene, "volume_fused", 0, cfg["k_sweep_c"])
         for n in cfg["synthetic"]:                       # scene size
             scene = synthetic_scene(n, *main_res)
             plan = sweep.plan(scene)
@@ -401,6 +421,36 @@ def _faults(row: dict) -> str:
     return "" if "faults_per_call" not in row else f" ({row['faults_per_call']:.0f} page faults per warm call)"
 
 
+def _renderer_table(rows: list[dict]) -> list[str]:
+    """Markdown lines of the renderer's headline figures per scene with end-to-end rows: the walk
+    (fused V-Render at C=3), Q-Render end to end against the fused V-Render of the same run, end
+    to end over select + blend, the blend against the roofline and backward over forward."""
+    scenes = {(r["scene"], r["width"], r["height"]) for r in rows if r["stage"] == "end-to-end"
+              and r["sampler"] == "quantile"}
+    if not scenes:
+        return []
+    lines = ["## The renderer end to end", "", "| scene | WxH | walk: fused C=3 | Q-Render K | C | Q end to end | "
+             "fused V-Render end to end | fused / Q | Q end to end / (select + blend) | Q blend fwd / roofline | "
+             "Q blend bwd / fwd | page faults per warm Q render |", "| --- " * 12 + "|"]
+    for name, width, height in sorted(scenes):
+        sc = dict(scene=name, width=width, height=height)
+        walk = _find(rows, stage="fused", channels=3, **sc)
+        for q in (r for r in rows if r["stage"] == "end-to-end" and r["sampler"] == "quantile"
+                  and all(r[key] == v for key, v in sc.items())):
+            c, k = q["channels"], q["k"]
+            fused = _find(rows, stage="end-to-end", sampler="volume_fused", channels=c, **sc)
+            sel = _find(rows, stage="selection", sampler="quantile", k=k, **sc)
+            fwd = _find(rows, stage="blend-forward", sampler="quantile", k=k, channels=c, **sc)
+            bwd = _find(rows, stage="blend-backward", sampler="quantile", k=k, channels=c, **sc)
+            if not (fused and sel and fwd and bwd):
+                continue
+            lines.append(f"| {name} | {width}x{height} | {_ms(walk)} | {k} | {c} | {_ms(q)} | {_ms(fused)} | "
+                         f"{fused['min_s'] / q['min_s']:.2f}x | {q['min_s'] / (sel['min_s'] + fwd['min_s']):.2f} | "
+                         f"{fwd['fraction_of_roofline']:.0%} | {bwd['min_s'] / fwd['min_s']:.2f} | "
+                         f"{_fault_count(q)} |")
+    return lines + [""]
+
+
 def summary_markdown(report: dict) -> str:
     """The markdown summary: headline ratios, the per-stage table, limits and complexity fits."""
     rows, meta, lim = report["results"], report["meta"], report["limits"]
@@ -434,6 +484,7 @@ def summary_markdown(report: dict) -> str:
                 lines.append(f"| {name} | {_ms(row)} | {row['min_s'] / cmp_t:.2f}x |")
         lines += ["", "(blend-only baselines are compared with Q-Render's blend; the others with "
                   "Q-Render's selection + blend)", ""]
+    lines += _renderer_table(rows)
     lines += ["## Per stage", "", "| scene | WxH | sampler | K | C | selection | blend fwd | blend bwd | "
               "fused | end-to-end | end-to-end page faults | blend fwd / roofline | mean entries | peak host MB |",
               "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]

@@ -78,7 +78,8 @@ def procedural_scene(n: int = 20000, seed: int = 0) -> Gaussians:
 
 
 def dense_room(n: int = 300_000, seed: int = 0, layers: int = 12,
-               size: tuple[float, float, float] = (6.0, 5.0, 3.0)) -> tuple[Gaussians, Camera]:
+               size: tuple[float, float, float] = (6.0, 5.0, 3.0), width: int = 640,
+               height: int = 480) -> tuple[Gaussians, Camera]:
     """A dense indoor room like an optimized 3DGS capture (~``n`` Gaussians, SH degree 1), and a
     camera inside it: floor, ceiling and four walls each made of ``layers`` stacked layers of
     semi-transparent, anisotropic Gaussians (opacities 0.05..0.5, a 10 cm thick surface), plus
@@ -106,8 +107,9 @@ def dense_room(n: int = 300_000, seed: int = 0, layers: int = 12,
     floaters = surface_gaussians(rng.uniform((0.2, 0.2, 0.2), (w - 0.2, d - 0.2, h - 0.2), (m, 3)),
                                  _unit_rows(rng.normal(size=(m, 3))), rng.random((m, 3)), spacing, rng,
                                  jitter=(0.5, 1.5), colour_noise=0.0, opacity=(0.01, 0.05))
-    camera = look_at((0.25 * w, 0.2 * d, 0.45 * h), (0.8 * w, 0.9 * d, 0.35 * h), (0, 0, 1), 520.0, 520.0,
-                     640, 480, name="dense-room")
+    f = 0.8125 * width                                               # 520 px at 640 px wide
+    camera = look_at((0.25 * w, 0.2 * d, 0.45 * h), (0.8 * w, 0.9 * d, 0.35 * h), (0, 0, 1), f, f,
+                     width, height, name="dense-room")
     return concat(parts + [floaters]), camera
 
 
