@@ -18,16 +18,9 @@ import os
 import pytest
 import torch
 
+from backbone_sweep import (UNET_IN_CHANNELS, ours_conv_step, peak_memory, room_voxels, spconv_available,
+                            spconv_conv_step, unet_step)
 from qr_cl.backbone import KernelMapCache, SparseUNet, minkunet14
-from backbone_sweep import (
-    UNET_IN_CHANNELS,
-    ours_conv_step,
-    peak_memory,
-    room_voxels,
-    spconv_available,
-    spconv_conv_step,
-    unet_step,
-)
 
 FULL_SIZES = {"20k": 20_000, "100k": 100_000}
 SMOKE_SIZES = {"20k": 1_000, "100k": 2_000}

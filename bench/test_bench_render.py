@@ -10,8 +10,8 @@ import pytest
 
 import qr_cl
 from benchutil import run
-from qr_cl.stages import sh_ref, vrender_ref
 from qr_cl.scene import orbit_cameras
+from qr_cl.stages import sh_ref, vrender_ref
 
 
 @pytest.fixture(scope="module")

@@ -13,13 +13,10 @@ import pyopencl.array as cla
 import pytest
 
 from benchutil import run
-from qr_cl.stages import blend_backward, blend_forward
-from qr_cl.scene import orbit_cameras
 from qr_cl.render import rasterize_plan
-from qr_cl.runtime import to_device
-from qr_cl.stages import select
-from qr_cl.runtime import channel_layout, padded_rows
-from qr_cl.stages import render_fused
+from qr_cl.runtime import channel_layout, padded_rows, to_device
+from qr_cl.scene import orbit_cameras
+from qr_cl.stages import blend_backward, blend_forward, render_fused, select
 
 C = 512
 CASES = [("volume", 0), ("quantile", 10), ("quantile", 40), ("topk", 10), ("topk", 40)]

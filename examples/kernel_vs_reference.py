@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 
 import qr_cl
-from qr_cl.stages import sh_ref, vrender_ref
 from qr_cl.scene import load_layout_instance
+from qr_cl.stages import sh_ref, vrender_ref
 
 
 def scenes(data: Path):

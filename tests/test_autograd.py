@@ -6,10 +6,8 @@ import pytest
 import torch
 
 import qr_cl
-from qr_cl.stages import select_ref
-from qr_cl.render import blend
-from qr_cl.render import rasterize_plan
-from qr_cl.stages import select
+from qr_cl.render import blend, rasterize_plan
+from qr_cl.stages import select, select_ref
 
 
 def torch_reference(h: dict, features: torch.Tensor, background=None) -> torch.Tensor:

@@ -4,13 +4,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from qr_cl.backbone.conv import (
-    DownsampleConv3d,
-    SparseBatchNorm,
-    SubmanifoldConv3d,
-    UpsampleConv3d,
-    sparse_conv,
-)
+from qr_cl.backbone.conv import (DownsampleConv3d, SparseBatchNorm, SubmanifoldConv3d, UpsampleConv3d,
+                                 sparse_conv)
 from qr_cl.backbone.sparse import SparseTensor
 
 GRID = 8

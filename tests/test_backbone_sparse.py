@@ -5,16 +5,8 @@ import itertools
 import pytest
 import torch
 
-from qr_cl.backbone.sparse import (
-    COORD_LIMIT,
-    MAX_BATCH,
-    KernelMapCache,
-    SparseTensor,
-    kernel_offsets,
-    offset_keys,
-    pack_keys,
-    unpack_keys,
-)
+from qr_cl.backbone.sparse import (COORD_LIMIT, MAX_BATCH, KernelMapCache, SparseTensor, kernel_offsets,
+                                   offset_keys, pack_keys, unpack_keys)
 
 
 def random_coords(n: int, extent: int, batches: int = 2, multiple: int = 1, seed: int = 0) -> torch.Tensor:

@@ -4,8 +4,8 @@ import json
 import pytest
 
 from qr_cl.app import benchmark
-from qr_cl.runtime import SAMPLERS
 from qr_cl.app.cli import main
+from qr_cl.runtime import SAMPLERS
 
 
 @pytest.fixture(scope="module")

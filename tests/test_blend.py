@@ -5,12 +5,9 @@ import numpy as np
 import pyopencl.array as cla
 import pytest
 
-from qr_cl.stages import blend_ref
-from qr_cl.stages import blend_backward, blend_forward
 from qr_cl.render import rasterize_plan
-from qr_cl.stages import select
 from qr_cl.runtime import channel_layout, padded_rows
-from qr_cl.stages import render_fused
+from qr_cl.stages import blend_backward, blend_forward, blend_ref, render_fused, select
 
 RTOL = 1e-5
 

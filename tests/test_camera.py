@@ -5,8 +5,7 @@ import numpy as np
 import pytest
 
 import qr_cl
-from qr_cl.scene import load_layout_instance, orbit_cameras
-from qr_cl.scene import SceneFormatError
+from qr_cl.scene import SceneFormatError, load_layout_instance, orbit_cameras
 
 
 def pixel_of(cam, points):

@@ -10,8 +10,8 @@ from qr_cl.app.cli import main
 from qr_cl.app.data import load_scene_folder
 from qr_cl.app.evaluate import evaluate_features, ground_truth, pseudo_labels
 from qr_cl.app.metrics import confusion_matrix, miou_macc
-from qr_cl.scene import Gaussians
 from qr_cl.app.synthetic import class_prototypes
+from qr_cl.scene import Gaussians
 from synthetic_helpers import tiny_config, tiny_scene
 
 

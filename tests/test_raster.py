@@ -4,13 +4,10 @@ import pytest
 import torch
 
 import qr_cl
-from qr_cl.stages import binning_ref, project_ref, sh_ref, vrender_ref
-from qr_cl.scene import look_at, orbit_cameras
-from qr_cl.runtime import runtime
 from qr_cl.render import rasterize_plan
-from qr_cl.runtime import to_device
-from qr_cl.scene import Gaussians
-from qr_cl.stages import sh_colors
+from qr_cl.runtime import runtime, to_device
+from qr_cl.scene import Gaussians, look_at, orbit_cameras
+from qr_cl.stages import binning_ref, project_ref, sh_colors, sh_ref, vrender_ref
 
 W, H = 96, 72
 
