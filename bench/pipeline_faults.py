@@ -38,6 +38,7 @@ def minflt() -> int:
 
 def scene():
     import numpy as np
+
     import qr_cl
     try:
         from qr_cl.app.procedural import procedural_scene
