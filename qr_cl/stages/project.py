@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pyopencl.array as cla
 
-from ..runtime import Runtime, TILE, device_empty, to_device
+from ..runtime import TILE, Runtime, device_empty, to_device
 
 
 def tile_grid(width: int, height: int) -> tuple[int, int]:
