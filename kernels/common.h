@@ -108,6 +108,14 @@ static inline lanef block_sigma(float8 s, lanef px, lanef py) {
     return 0.5f * (s.s2 * dx * dx + s.s4 * dy * dy) + s.s3 * dx * dy;
 }
 
+/* Declares px, py, row and range (the tile list) of the block of this work-item, in a kernel
+   declared with BLOCK_ARGS. */
+#define BLOCK_SETUP \
+    lanef px, py; \
+    lanei row; \
+    const int2 range = block_rays(get_global_id(0), full, ranges, pixels, order, blocks, width, height, \
+                                  tiles_x, &px, &py, &row);
+
 /* splat_alpha of splat s from its exponents sig, as vectors (the same expression). */
 static inline lanef block_alpha(float8 s, lanef sig) {
     const lanef a = fmin((lanef)(ALPHA_MAX), s.s5 * exp(-sig));

@@ -18,16 +18,49 @@ static inline void normalize_weights(__global float *w, int n) {
     for (int j = 0; j < n; j++) w[j] /= sum;
 }
 
+/* The outputs of the samplers that select at most K Gaussians per ray (rows of K slots). */
+#define K_ROWS_ARGS const int K, __global int *out_ids, __global float *out_w, __global int *count, \
+    __global float *t_walk, __global float *t_sel, __global float *t_rem
+
+/* The lanes cross of an Algorithm 1 walk take Gaussian g (alpha' a, transmittance after it
+   T_test) as their next quantile Gaussian: entry (g, w^Q = T^Q alpha') in the lane's row, T^Q
+   updated, and k advanced past every boundary T_test crossed (bound: the lane's next boundary,
+   BOUNDARY(k): its (k+1)-th). Rare: at most K times per ray. */
+#define TAKE_QUANTILES(cross, g, a, T_test, BOUNDARY) \
+    for (int l = 0; l < TILE; l++) { \
+        if (!LANE_I(cross, l)) continue; \
+        const size_t slot = (size_t)LANE_I(row, l) * K + LANE_I(n, l)++; \
+        out_ids[slot] = g; \
+        out_w[slot] = LANE(TQ, l) * LANE(a, l); \
+        LANE(TQ, l) *= 1.f - LANE(a, l); \
+        int kl = LANE_I(k, l) + 1; \
+        while (LANE(T_test, l) < BOUNDARY(kl)) kl++; \
+        LANE_I(k, l) = kl; \
+        LANE(bound, l) = BOUNDARY(kl); \
+    }
+
+/* The boundaries of lane l: Q-Render's uniform ones, Stratified-K's from the lane's statistics. */
+#define UNIFORM(k) quantile_boundary(k, K)
+#define STRATIFIED(k) stratified_boundary(k, K, LANE(mu, l), LANE(sigma, l), LANE(t_end, l))
+
+/* Per lane of a block: normalize its n entries and write count, t_walk = T, t_sel = T^Q and
+   t_rem (1 when nothing was selected). */
+static inline void finish_rows(lanei row, lanei n, lanef T, lanef TQ, int K, __global float *out_w,
+                               __global int *count, __global float *t_walk, __global float *t_sel,
+                               __global float *t_rem) {
+    for (int l = 0; l < TILE; l++) {
+        const int p = LANE_I(row, l), nl = LANE_I(n, l);
+        if (p < 0) continue;
+        normalize_weights(out_w + (size_t)p * K, nl);
+        count[p] = nl; t_walk[p] = LANE(T, l); t_sel[p] = LANE(TQ, l); t_rem[p] = nl ? 0.f : 1.f;
+    }
+}
+
 /* Q-Render selection, Algorithm 1 of the paper, for each lane: a Gaussian whose T_test crosses
    the lane's next boundary 1 - (k+1)/(K+1) is a quantile Gaussian (w^Q = T^Q alpha'); the walk
    stops once T_test < 1/(K+1). */
-__kernel void select_quantile(BLOCK_ARGS, const int K, __global int *out_ids, __global float *out_w,
-                              __global int *count, __global float *t_walk,
-                              __global float *t_sel, __global float *t_rem) {
-    lanef px, py;
-    lanei row;
-    const int2 range = block_rays(get_global_id(0), full, ranges, pixels, order, blocks, width, height,
-                                  tiles_x, &px, &py, &row);
+__kernel void select_quantile(BLOCK_ARGS, K_ROWS_ARGS) {
+    BLOCK_SETUP
     const float stop = 1.f / (float)(K + 1);
     lanef T = (lanef)(1.f), TQ = (lanef)(1.f), bound = (lanef)(quantile_boundary(0, K));
     lanei k = (lanei)(0), n = (lanei)(0), done = row < 0;
@@ -41,27 +74,11 @@ __kernel void select_quantile(BLOCK_ARGS, const int K, __global int *out_ids, __
         if (!any(use)) continue;
         const lanef T_test = T * (1.f - a);
         const lanei cross = use & (T_test < bound);
-        if (any(cross))                                   /* a quantile in some lanes (rare) */
-            for (int l = 0; l < TILE; l++) {
-                if (!LANE_I(cross, l)) continue;
-                const size_t slot = (size_t)LANE_I(row, l) * K + LANE_I(n, l)++;
-                out_ids[slot] = g;
-                out_w[slot] = LANE(TQ, l) * LANE(a, l);   /* w^Q = T^Q alpha' */
-                LANE(TQ, l) *= 1.f - LANE(a, l);
-                int kl = LANE_I(k, l) + 1;
-                while (LANE(T_test, l) < quantile_boundary(kl, K)) kl++;   /* boundaries also crossed */
-                LANE_I(k, l) = kl;
-                LANE(bound, l) = quantile_boundary(kl, K);
-            }
+        if (any(cross)) TAKE_QUANTILES(cross, g, a, T_test, UNIFORM)
         T = select(T, T_test, use);
         done |= use & (T_test < stop);
     }
-    for (int l = 0; l < TILE; l++) {
-        const int p = LANE_I(row, l), nl = LANE_I(n, l);
-        if (p < 0) continue;
-        normalize_weights(out_w + (size_t)p * K, nl);
-        count[p] = nl; t_walk[p] = LANE(T, l); t_sel[p] = LANE(TQ, l); t_rem[p] = nl ? 0.f : 1.f;
-    }
+    finish_rows(row, n, T, TQ, K, out_w, count, t_walk, t_sel, t_rem);
 }
 
 /* Inverse of the standard normal CDF (Acklam's rational approximation; |Phi(x) - p| < 1e-4 p in
@@ -108,13 +125,8 @@ static inline float stratified_boundary(int k, int K, float mu, float sigma, flo
    second walk is Algorithm 1 with the K boundaries placed uniformly in probability under the
    normal fitted to them (denser where the transmittance values cluster) instead of uniformly in
    T. Weights and normalization as Q-Render. */
-__kernel void select_stratified(BLOCK_ARGS, const int K, __global int *out_ids, __global float *out_w,
-                                __global int *count, __global float *t_walk,
-                                __global float *t_sel, __global float *t_rem) {
-    lanef px, py;
-    lanei row;
-    const int2 range = block_rays(get_global_id(0), full, ranges, pixels, order, blocks, width, height,
-                                  tiles_x, &px, &py, &row);
+__kernel void select_stratified(BLOCK_ARGS, K_ROWS_ARGS) {
+    BLOCK_SETUP
     lanef sum = (lanef)(0.f), sum_sq = (lanef)(0.f), used = (lanef)(0.f), t_end;
     {                                                 /* pass 1: the transmittance statistics */
         VOLUME_WALK(range, px, py, row,
@@ -130,27 +142,9 @@ __kernel void select_stratified(BLOCK_ARGS, const int K, __global int *out_ids, 
     for (int l = 0; l < TILE; l++)
         LANE(bound, l) = stratified_boundary(0, K, LANE(mu, l), LANE(sigma, l), LANE(t_end, l));
     VOLUME_WALK(range, px, py, row,                  /* pass 2: Algorithm 1, stratified boundaries */
-        const lanef T_test = next_T;
-        const lanei cross = use & (T_test < bound);
-        if (any(cross))
-            for (int l = 0; l < TILE; l++) {
-                if (!LANE_I(cross, l)) continue;
-                const size_t slot = (size_t)LANE_I(row, l) * K + LANE_I(n, l)++;
-                out_ids[slot] = g;
-                out_w[slot] = LANE(TQ, l) * LANE(a, l);
-                LANE(TQ, l) *= 1.f - LANE(a, l);
-                int kl = LANE_I(k, l) + 1;
-                const float mu_l = LANE(mu, l), sigma_l = LANE(sigma, l), end_l = LANE(t_end, l);
-                while (LANE(T_test, l) < stratified_boundary(kl, K, mu_l, sigma_l, end_l)) kl++;
-                LANE_I(k, l) = kl;
-                LANE(bound, l) = stratified_boundary(kl, K, mu_l, sigma_l, end_l);
-            })
-    for (int l = 0; l < TILE; l++) {
-        const int p = LANE_I(row, l), nl = LANE_I(n, l);
-        if (p < 0) continue;
-        normalize_weights(out_w + (size_t)p * K, nl);
-        count[p] = nl; t_walk[p] = LANE(T, l); t_sel[p] = LANE(TQ, l); t_rem[p] = nl ? 0.f : 1.f;
-    }
+        const lanei cross = use & (next_T < bound);
+        if (any(cross)) TAKE_QUANTILES(cross, g, a, next_T, STRATIFIED))
+    finish_rows(row, n, T, TQ, K, out_w, count, t_walk, t_sel, t_rem);
 }
 
 /* Min-heap order of (weight, list position): the smaller weight, or on a tie the later
@@ -201,13 +195,8 @@ static inline void pos_sift_down(__global int *hp, int i, int n) {
 /* top-K selection: the K largest V-Render weights w_i = T_i alpha'_i of each lane (bounded
    min-heap kept in the ray's output row, O(N log K)), then re-composited in depth order among
    the selected. */
-__kernel void select_topk(BLOCK_ARGS, const int K, __global int *out_ids, __global float *out_w,
-                          __global int *count, __global float *t_walk,
-                          __global float *t_sel, __global float *t_rem) {
-    lanef px, py;
-    lanei row;
-    const int2 range = block_rays(get_global_id(0), full, ranges, pixels, order, blocks, width, height,
-                                  tiles_x, &px, &py, &row);
+__kernel void select_topk(BLOCK_ARGS, K_ROWS_ARGS) {
+    BLOCK_SETUP
     int n[TILE];
     for (int l = 0; l < TILE; l++) n[l] = 0;
     VOLUME_WALK(range, px, py, row,
@@ -241,10 +230,7 @@ __kernel void select_topk(BLOCK_ARGS, const int K, __global int *out_ids, __glob
 
 /* V-Render selection, counting pass: entries per ray and the final T. */
 __kernel void volume_count(BLOCK_ARGS, __global int *count, __global float *t_walk) {
-    lanef px, py;
-    lanei row;
-    const int2 range = block_rays(get_global_id(0), full, ranges, pixels, order, blocks, width, height,
-                                  tiles_x, &px, &py, &row);
+    BLOCK_SETUP
     lanei n = (lanei)(0);
     VOLUME_WALK(range, px, py, row, n -= use)         /* use is -1 where a lane blends */
     for (int l = 0; l < TILE; l++) {
@@ -257,10 +243,7 @@ __kernel void volume_count(BLOCK_ARGS, __global int *count, __global float *t_wa
    (exclusive scan of count). The background weight is the final T. */
 __kernel void volume_fill(BLOCK_ARGS, __global const int *offsets, __global int *out_ids,
                           __global float *out_w, __global float *t_sel, __global float *t_rem) {
-    lanef px, py;
-    lanei row;
-    const int2 range = block_rays(get_global_id(0), full, ranges, pixels, order, blocks, width, height,
-                                  tiles_x, &px, &py, &row);
+    BLOCK_SETUP
     int slot[TILE];
     for (int l = 0; l < TILE; l++) slot[l] = LANE_I(row, l) >= 0 ? offsets[LANE_I(row, l)] : 0;
     VOLUME_WALK(range, px, py, row,
