@@ -4,9 +4,11 @@ from __future__ import annotations
 
 from typing import Sequence
 
+import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from ..runtime import host_empty
 from ..scene.gaussians import Gaussians
 from .sparse import SparseTensor
 from .unet import SparseUNet, UNetConfig, minkunet14
@@ -71,9 +73,56 @@ class GSNet(nn.Module):
             raise ValueError("the VoxelBatch was not made with this network's voxel config: use GSNet.prepare")
         voxels = self.unet(SparseTensor(batch.coords, batch.feats, 1, batch.cache)).feats
         if rows is not None:
-            feats = self.head(devoxelize(voxels, batch, self.reduce, rows))
-        elif self.reduce == "mean" or batch.one_sample_per_gaussian:
+            return unit_linear(devoxelize(voxels, batch, self.reduce, rows), self.head.weight, self.head.bias)
+        if self.reduce == "mean" or batch.one_sample_per_gaussian:
             feats = devoxelize(self.head(voxels), batch, self.reduce)
         else:
             feats = self.head(devoxelize(voxels, batch, self.reduce))
         return F.normalize(feats, dim=1)
+
+
+#: Rows per block of :func:`unit_linear`'s backward row dot products (a small reused temporary).
+_BLOCK_ROWS = 1024
+
+
+def _pooled(rows: int, cols: int) -> Tensor:
+    """An uninitialised float32 [rows, cols] tensor over pooled host memory (memory of an earlier
+    one that nothing references any more: no fresh pages to fault in)."""
+    return torch.from_numpy(host_empty((rows, cols)))
+
+
+class _UnitLinear(torch.autograd.Function):
+    """y = normalize(x @ weight.T + bias) row by row, with y and the gradient of the linear output
+    in pooled host memory, and the backward's row dot products taken in blocks: no [U, C]
+    temporaries are allocated per call (torch's normalize backward allocates several)."""
+
+    @staticmethod
+    def forward(ctx, x: Tensor, weight: Tensor, bias: Tensor) -> Tensor:
+        y = _pooled(x.shape[0], weight.shape[0])
+        torch.addmm(bias, x, weight.t(), out=y)
+        inv = torch.linalg.vector_norm(y, dim=1, keepdim=True).clamp_min_(1e-12).reciprocal_()
+        y.mul_(inv)
+        ctx.save_for_backward(x, weight, y, inv)
+        return y
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):
+        x, weight, y, inv = ctx.saved_tensors
+        grad = grad.contiguous()
+        dz = _pooled(*y.shape)                        # dz = (g - y (y . g)) / |z|
+        for start in range(0, y.shape[0], _BLOCK_ROWS):
+            block = slice(start, start + _BLOCK_ROWS)
+            torch.mul(grad[block], y[block], out=dz[block])
+            dot = dz[block].sum(1, keepdim=True)
+            torch.mul(y[block], dot, out=dz[block])
+        torch.sub(grad, dz, out=dz)
+        dz.mul_(inv)
+        return dz @ weight, dz.t() @ x, dz.sum(0)
+
+
+def unit_linear(x: Tensor, weight: Tensor, bias: Tensor) -> Tensor:
+    """``F.normalize(F.linear(x, weight, bias), dim=1)`` (x [U, C_in], weight [C, C_in], bias [C]
+    -> [U, C] unit rows, float32; a row whose linear output is zero stays zero) without
+    allocating [U, C] temporaries in forward or backward: GS-Net's head on a step's rows."""
+    return _UnitLinear.apply(x.contiguous(), weight, bias)
+

@@ -8,20 +8,15 @@ import torch
 from qr_cl.app.baseline import fit_free_features
 from qr_cl.app.data import load_scene_folder
 from qr_cl.app.loss import contrastive_loss, sample_rays
-from qr_cl.app.model import torch_threads
 from qr_cl.app.train import TrainConfig, train
-from synthetic_helpers import tiny_scene
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    with torch_threads(1):
-        yield
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")
-def scene(tmp_path_factory):
-    return tiny_scene(tmp_path_factory.mktemp("cache"), seed=1)
+def scene(tiny_room):
+    return tiny_room
 
 
 def _cfg(scene, out, **kw) -> TrainConfig:

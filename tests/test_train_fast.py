@@ -8,27 +8,23 @@ import torch
 import torch.nn.functional as F
 
 from qr_cl.app.data import load_scene_folder
-from qr_cl.app.loss import ViewSelections, contrastive_loss, rays_loss, sample_rays, scene_loss, step_rays
-from qr_cl.app.model import torch_threads
+from qr_cl.app.loss import (ViewSelections, contrastive_loss, cosine_logits, rays_loss, sample_rays, scene_loss,
+                            step_rays)
 from qr_cl.app.train import TrainConfig, train
 from qr_cl.backbone import GSNet, VoxelConfig, devoxelize, minkunet14
 from qr_cl.render import rasterize
 from qr_cl.scene import Gaussians
-from synthetic_helpers import tiny_scene
 
 SMALL = dict(stem_channels=8, stem_kernel=3, enc_channels=(8, 16, 16), enc_blocks=(1, 1, 1),
              dec_channels=(16, 8, 8), dec_blocks=(1, 1, 1))
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    with torch_threads(1):
-        yield
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")
-def scene(tmp_path_factory):
-    return tiny_scene(tmp_path_factory.mktemp("cache"), seed=1)
+def scene(tiny_room):
+    return tiny_room
 
 
 def random_gaussians(n: int, seed: int) -> Gaussians:
@@ -127,3 +123,23 @@ def test_same_seed_same_curve_with_or_without_kept_selections(scene, tmp_path):
     assert kept.history == again.history == fresh.history
     assert kept.views.nbytes > 0 and fresh.views.nbytes == 0
     assert all(0 < t < 1 for t in kept.touched)
+
+
+def test_cosine_logits_match_normalize_and_its_gradient():
+    gen = torch.Generator().manual_seed(0)
+    rendered = torch.randn(9, 6, generator=gen, dtype=torch.float64)
+    rendered[4] = 0                                           # a ray that selected nothing
+    masks = [F.normalize(torch.randn(m, 6, generator=gen, dtype=torch.float64), dim=1) for m in (3, 2, 4)]
+    sizes = [4, 0, 5]
+    mine = rendered.clone().requires_grad_()
+    ref = rendered.clone().requires_grad_()
+    got = cosine_logits(mine, sizes, masks, 0.1)
+    want = [F.normalize(r, dim=1) @ m.T / 0.1 for r, m in zip(torch.split(ref, sizes), masks)]
+    for g, w in zip(got, want):
+        torch.testing.assert_close(g, w, rtol=1e-12, atol=1e-12)
+    weights = [torch.randn(w.shape, generator=gen, dtype=torch.float64) for w in want]
+    sum((g * w).sum() for g, w in zip(got, weights)).backward()
+    sum((g * w).sum() for g, w in zip(want, weights)).backward()
+    torch.testing.assert_close(mine.grad, ref.grad, rtol=1e-10, atol=1e-12)
+    with pytest.raises(ValueError, match="split"):
+        cosine_logits(mine, [4, 4], masks[:2], 0.1)

@@ -15,6 +15,7 @@ import torch
 import torch.nn.functional as F
 
 from ..render import blend, rasterize_plan
+from ..runtime import host_empty
 from ..stages.binning import RasterPlan
 from ..stages.select import (CompactSelection, Selection, compact_selections, concat_selections, gather_rays,
                               select)
@@ -43,8 +44,54 @@ def contrastive_loss(rendered: torch.Tensor, target: torch.Tensor, mask_features
     if rendered.ndim != 2 or mask_features.ndim != 2 or rendered.shape[1] != mask_features.shape[1]:
         raise ValueError(f"rendered {tuple(rendered.shape)} and mask_features {tuple(mask_features.shape)} "
                          "must be [P,C] and [M,C]")
-    logits = F.normalize(rendered, dim=1) @ mask_features.T / temperature
+    (logits,) = cosine_logits(rendered, [rendered.shape[0]], [mask_features], temperature)
     return F.cross_entropy(logits, target)
+
+
+def cosine_logits(rendered: torch.Tensor, sizes: list[int], mask_features: list[torch.Tensor],
+                  temperature: float) -> tuple[torch.Tensor, ...]:
+    """Logits of several views' rays at once: ``rendered`` [P,C] holds the views' rays one view
+    after the other (``sizes`` [V] rays per view, summing to P); view v's rays are scored against
+    its ``mask_features[v]`` [M_v,C]. Returns per view [P_v, M_v] = cos(ray, mask) / temperature,
+    i.e. ``F.normalize(rendered_v, dim=1) @ mask_features[v].T / temperature``. The backward
+    writes d rendered [P,C] into one pooled host array and allocates no other [P,C] array."""
+    if sum(sizes) != rendered.shape[0] or len(sizes) != len(mask_features):
+        raise ValueError(f"sizes {list(sizes)} must split the {rendered.shape[0]} rays among "
+                         f"{len(mask_features)} views")
+    return _CosineLogits.apply(rendered, float(temperature), tuple(int(n) for n in sizes), *mask_features)
+
+
+class _CosineLogits(torch.autograd.Function):
+    """:func:`cosine_logits`: logits_v = (r_v @ M_v^T) * inv_v / T with inv = 1 / max(|r|, 1e-12)
+    (F.normalize's clamp); d r_v = s_v @ M_v - (sum_m s_v * (r_v @ M_v^T)) inv_v^2 r_v with
+    s_v = g_v inv_v / T (no second term where the norm was clamped)."""
+
+    @staticmethod
+    def forward(ctx, rendered: torch.Tensor, temperature: float, sizes: tuple[int, ...], *masks: torch.Tensor):
+        rendered = rendered.contiguous()
+        norm = torch.linalg.vector_norm(rendered, dim=1, keepdim=True)
+        inv = norm.clamp_min(1e-12).reciprocal_()
+        sims = [r @ m.T for r, m in zip(torch.split(rendered, sizes), masks)]
+        ctx.save_for_backward(rendered, inv, (norm > 1e-12).to(rendered.dtype), *sims, *masks)
+        ctx.temperature, ctx.sizes = temperature, sizes
+        return tuple(sim * i / temperature for sim, i in zip(sims, torch.split(inv, sizes)))
+
+    @staticmethod
+    def backward(ctx, *grads: torch.Tensor):
+        rendered, inv, unclamped, *rest = ctx.saved_tensors
+        n = len(ctx.sizes)
+        sims, masks = rest[:n], rest[n:]
+        d = torch.from_numpy(host_empty(tuple(rendered.shape))) if rendered.dtype == torch.float32 else \
+            torch.empty_like(rendered)
+        for g, sim, m, r, i, u, out in zip(grads, sims, masks, *(torch.split(t, ctx.sizes) for t in
+                                                                (rendered, inv, unclamped, d))):
+            if g is None:
+                out.zero_()
+                continue
+            scaled = g * i / ctx.temperature
+            torch.mm(scaled, m, out=out)
+            out.addcmul_(r, (scaled * sim).sum(1, keepdim=True) * i * i * u, value=-1)
+        return (d, None, None) + (None,) * n
 
 
 def sample_rays(frame: Frame, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
@@ -152,9 +199,9 @@ def rays_loss(rays: StepRays, table: torch.Tensor, temperature: float) -> torch.
     if table.ndim != 2 or table.shape[0] != len(rays.rows):
         raise ValueError(f"table must be [{len(rays.rows)}, C] (one row per Gaussian in rays.rows), "
                          f"got {tuple(table.shape)}")
-    images = torch.split(blend(rays.selection, table), [len(t) for t in rays.targets])
-    losses = [contrastive_loss(image, torch.from_numpy(target), torch.from_numpy(masks), temperature)
-              for image, target, masks in zip(images, rays.targets, rays.mask_features)]
+    logits = cosine_logits(blend(rays.selection, table), [len(t) for t in rays.targets],
+                           [torch.from_numpy(m) for m in rays.mask_features], temperature)
+    losses = [F.cross_entropy(view, torch.from_numpy(target)) for view, target in zip(logits, rays.targets)]
     return torch.stack(losses).mean()
 
 

@@ -3,6 +3,7 @@
 The network takes a scene's Gaussians as they are (``net.prepare([scene.gaussians])``)."""
 from __future__ import annotations
 
+import os
 from contextlib import contextmanager
 
 import torch
@@ -23,11 +24,34 @@ def build_net(net: str, feature_dim: int, grid_size: float):
     return GSNet(feature_dim, voxels, minkunet14(voxels.num_features, **NETS[net]))
 
 
+def process_cores() -> int:
+    """Cores this process may use: its CPU affinity (``os.sched_getaffinity``) shared evenly
+    among the ranks of a torchrun job on this machine (``LOCAL_WORLD_SIZE``), at least 1."""
+    return max(1, len(os.sched_getaffinity(0)) // max(1, int(os.environ.get("LOCAL_WORLD_SIZE", "1"))))
+
+
+def cap_kernel_threads(torch_threads: int) -> int:
+    """Give PoCL (the CPU OpenCL driver) at most the cores that ``torch_threads`` intra-op threads
+    leave free, at least one: ``POCL_MAX_PTHREAD_COUNT``, unless already set. PoCL reads it when
+    the OpenCL platform is first touched, so call this before anything renders (the CLI's train
+    and demo do). Returns the value in force.
+
+    Measured on 2 cores beside two busy loops: 20 demo training steps took 22.4 s with PoCL's
+    default 2 workers (5.2x alone) and 7.6 s with 1 (1.9x alone; 4.0 s alone, as fast as with 2):
+    a kernel ends when its last worker does, and a worker pre-empted by another process holds it up.
+    """
+    os.environ.setdefault("POCL_MAX_PTHREAD_COUNT", str(max(1, process_cores() - torch_threads)))
+    return int(os.environ["POCL_MAX_PTHREAD_COUNT"])
+
+
 @contextmanager
 def torch_threads(n: int):
     """Run the block with ``n`` torch intra-op threads (restored after). One thread is the default
     for training: PoCL renders with its own threads, and torch's OpenMP workers spin badly when the
-    cores are shared (a 0.7 s step took 60 s with 2 threads on a busy 2-core machine)."""
+    cores are shared (a 0.7 s step took 60 s with 2 threads on a busy 2-core machine; measured
+    again on the demo rooms beside other busy processes: 2 threads made a step 3.6-16x slower than
+    1 thread with libgomp's default spinning, 2-3.9x with ``OMP_WAIT_POLICY=PASSIVE``). Torch's
+    results depend on the thread count, so it is fixed for a run, never adapted to the load."""
     old = torch.get_num_threads()
     torch.set_num_threads(n)
     try:

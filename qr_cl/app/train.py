@@ -1,9 +1,19 @@
 """``qr-cl train``: GS-Net trained through a feature renderer with the contrastive loss (paper App. D).
 
 Each step draws ``batch_scenes`` scenes (seeded by the step, identical on every rank); for each
-scene GS-Net predicts F [N,C], ``views`` random views are drawn, ``rays`` pixels per view inside
-masks are rendered with the chosen sampler and scored by :func:`qr_cl.loss.contrastive_loss`.
-Adam; ReduceLROnPlateau (factor 0.1) on the mean loss of every ``plateau_interval`` steps.
+scene ``views`` random views are drawn, ``rays`` pixels per view inside masks are selected with
+the chosen sampler, GS-Net predicts the features of the Gaussians those selections use (the
+UNet runs on every voxel; de-voxelization, head and normalization only for those rows) and the
+rays rendered from them are scored by :func:`qr_cl.app.loss.contrastive_loss`. Adam;
+ReduceLROnPlateau (factor 0.1) on the mean loss of every ``plateau_interval`` steps.
+
+Where the time goes (demo rooms, 2 cores): the selections are geometry, so each view's
+whole-image selection is made once and a step's rays are gathered from it (up to
+``view_selections_mb`` of them are kept; then views are selected ray by ray each step), and the
+next step's rays are made on a background thread while the network runs. Torch runs one
+intra-op thread (the CLI's ``--torch-threads``): its OpenMP workers spin-wait at barriers, and
+beside other busy processes two of them made a step 3.6-16x slower than one. PoCL gets the cores
+torch leaves free (:func:`qr_cl.app.model.cap_kernel_threads`; one of two) for the kernels.
 
 Scale-out: ``torchrun --nproc_per_node N -m qr_cl.train ...`` runs data-parallel over the
 scenes of a step (gloo on CPU): rank r takes slots r, r+N, ...; gradients are summed with
@@ -23,6 +33,7 @@ import os
 import signal
 import sys
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -33,8 +44,8 @@ from tqdm import tqdm
 
 from ..runtime import SAMPLERS
 from .data import SceneData, load_scene_folder
-from .loss import ViewSelections, rays_loss, step_rays
-from .model import NETS, build_net, torch_threads
+from .loss import StepRays, ViewSelections, rays_loss, step_rays
+from .model import NETS, build_net, cap_kernel_threads, torch_threads
 
 @dataclass
 class TrainConfig:
@@ -57,7 +68,7 @@ class TrainConfig:
     plateau_interval: int = 25
     patience: int = 2
     level: int = 0
-    view_selections_mb: int = 1024
+    view_selections_mb: int = 1024      # whole-view selections kept (MiB; results do not depend on it)
     feature_dim: int = field(default=0)
 
     def __post_init__(self) -> None:
@@ -99,7 +110,9 @@ class Trainer:
         self.net = build_net(cfg.net, cfg.feature_dim, cfg.grid_size)
         self.batches: dict[int, object] = {}
         self.views = ViewSelections(cfg.view_selections_mb << 20)
-        self.touched: list[float] = []
+        self.touched: list[float] = []     # U / N of each slot this process trained (not checkpointed)
+        self._ahead: dict[tuple[int, int], Future] = {}
+        self._worker: ThreadPoolExecutor | None = None
         self.opt = torch.optim.Adam(self.net.parameters(), lr=cfg.lr)
         self.sched = torch.optim.lr_scheduler.ReduceLROnPlateau(self.opt, factor=0.1, patience=cfg.patience)
         self.step = 0
@@ -112,16 +125,50 @@ class Trainer:
             self.batches[i] = self.net.prepare([self.scenes[i].gaussians])
         return self.batches[i]
 
+    def my_slots(self, step: int) -> list[tuple[int, int]]:
+        """(slot, scene index) of the slots of ``step`` that this rank trains."""
+        slots = step_slots(self.cfg, step, len(self.scenes))
+        return [(slot, slots[slot]) for slot in range(self.rank, len(slots), self.world)]
+
+    def make_rays(self, step: int, slot: int, scene: int) -> StepRays:
+        """The rays of ``slot`` of ``step`` (scene index ``scene``), selected and re-indexed, with the
+        selection's transpose (the blend backward's view of it) made too: geometry only, so it
+        can run while the network of the previous step does."""
+        rays = step_rays(self.scenes[scene], self.cfg, np.random.default_rng([self.cfg.seed, step, slot]), self.views)
+        rays.selection.transpose()
+        return rays
+
+    def prefetch(self, step: int) -> None:
+        """Start making the rays of ``step`` on a background thread (one at a time, so the OpenCL
+        work of the selections never runs beside itself; the training thread meanwhile runs
+        torch and only the blend kernels, so the two never share a kernel object)."""
+        if self._worker is None:
+            self._worker = ThreadPoolExecutor(1, thread_name_prefix="qr-cl-rays")
+        for slot, scene in self.my_slots(step):
+            self._ahead[(step, slot)] = self._worker.submit(self.make_rays, step, slot, scene)
+
+    def close(self) -> None:
+        """Wait for and drop the rays made ahead, and stop their thread."""
+        if self._worker is not None:
+            self._worker.shutdown(wait=True)
+            self._worker = None
+        self._ahead.clear()
+
     def train_step(self) -> tuple[float, int]:
-        """One optimizer step over this step's scenes; returns (global loss, rays on this rank)."""
+        """One optimizer step over this step's scenes; returns (global loss, rays on this rank).
+
+        The next step's rays are made on a background thread while this step's network runs
+        (unless this is the last step of ``cfg.steps``)."""
         cfg = self.cfg
         self.net.train()
         self.opt.zero_grad(set_to_none=False)
-        slots = step_slots(cfg, self.step, len(self.scenes))
+        mine = self.my_slots(self.step)
+        made = [self._ahead.pop((self.step, slot)).result() if (self.step, slot) in self._ahead
+                else self.make_rays(self.step, slot, scene) for slot, scene in mine]
+        if self.step + 1 < cfg.steps:
+            self.prefetch(self.step + 1)
         total, rays = torch.zeros(()), 0
-        for slot in range(self.rank, len(slots), self.world):
-            scene = slots[slot]
-            step = step_rays(self.scenes[scene], cfg, np.random.default_rng([cfg.seed, self.step, slot]), self.views)
+        for (slot, scene), step in zip(mine, made):
             table = self.net(self.batch(scene), torch.from_numpy(step.rows))
             loss = rays_loss(step, table, cfg.temperature)
             (loss / cfg.batch_scenes).backward()
@@ -185,25 +232,30 @@ def train(cfg: TrainConfig, resume: bool = False, rank: int = 0, world: int = 1,
     bar = tqdm(total=cfg.steps, initial=trainer.step, desc=f"train {cfg.sampler}", unit="step",
                disable=not progress or rank != 0)
     try:
+        last = time.perf_counter()
         while trainer.step < cfg.steps:
-            start = time.perf_counter()
             loss, rays = trainer.train_step()
-            bar.update(1)
-            bar.set_postfix(loss=f"{loss:.3f}", rays_s=f"{rays * world / (time.perf_counter() - start):.0f}")
             if trainer.step % cfg.checkpoint_every == 0 or trainer.step == cfg.steps:
                 trainer.save()
+            now = time.perf_counter()     # rays of all ranks over the whole iteration, checkpoint included
+            bar.update(1)
+            bar.set_postfix(loss=f"{loss:.3f}", rays_s=f"{rays * world / (now - last):.0f}",
+                            touched=f"{trainer.touched[-1]:.0%}")
+            last = now
     except KeyboardInterrupt:
         trainer.save()
         bar.close()
         print(f"interrupted at step {trainer.step}; checkpoint {path} (continue with --resume)", file=sys.stderr)
         raise
     finally:
+        trainer.close()
         bar.close()
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
     if rank == 0:
         Path(cfg.out).mkdir(parents=True, exist_ok=True)
-        Path(cfg.out, "train_log.json").write_text(json.dumps({"loss": trainer.history, "config": asdict(cfg)}))
+        log = {"loss": trainer.history, "touched": trainer.touched, "config": asdict(cfg)}
+        Path(cfg.out, "train_log.json").write_text(json.dumps(log))
     return trainer
 
 
@@ -228,6 +280,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--plateau-interval", type=int, default=d.plateau_interval,
                         help="steps per ReduceLROnPlateau observation (default 25)")
     parser.add_argument("--level", type=int, default=d.level, help="LangSplat mask level (default 0)")
+    parser.add_argument("--view-selections-mb", type=int, default=d.view_selections_mb,
+                        help="MiB of whole-view selections kept for gathering rays (default 1024; 0 selects "
+                             "each step's rays afresh; same results either way)")
     parser.add_argument("--resume", action="store_true", help="continue from <out>/checkpoint.pt")
     parser.add_argument("--torch-threads", type=int, default=1, help="torch intra-op threads (default 1)")
 
@@ -238,7 +293,8 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
                        batch_scenes=args.batch_scenes, views=args.views, rays=args.rays, sampler=args.sampler,
                        k=args.k, lr=args.lr, temperature=args.temperature, grid_size=args.grid_size, net=args.net,
                        seed=args.seed, checkpoint_every=args.checkpoint_every,
-                       plateau_interval=args.plateau_interval, level=args.level)
+                       plateau_interval=args.plateau_interval, level=args.level,
+                       view_selections_mb=args.view_selections_mb)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -247,6 +303,7 @@ def run(args: argparse.Namespace) -> int:
     rank = int(os.environ.get("RANK", "0"))
     if world > 1:
         dist.init_process_group("gloo")
+    cap_kernel_threads(args.torch_threads)
     try:
         with torch_threads(args.torch_threads):
             trainer = train(config_from_args(args), args.resume, rank, world)
