@@ -43,7 +43,7 @@ import torch.distributed as dist
 from tqdm import tqdm
 
 from ..runtime import SAMPLERS
-from .data import SceneData, load_scene_folder
+from .data import load_scene_folder
 from .loss import StepRays, ViewSelections, rays_loss, step_rays
 from .model import NETS, build_net, cap_kernel_threads, torch_threads
 
