@@ -531,7 +531,7 @@ def write_plots(report: dict, out: Path) -> None:
     sc = dict(scene=blend[0]["scene"], width=blend[0]["width"], height=blend[0]["height"])
     c_main = max(r["channels"] for r in blend)
     fig, ax = plt.subplots(figsize=(6, 4))
-    for sampler in ("quantile", "topk"):
+    for sampler in (s for s in SAMPLERS if s != "volume"):
         pts = sorted((r["k"], r["min_s"] + _find(rows, stage="selection", sampler=sampler, k=r["k"], **sc)["min_s"])
                      for r in blend if r["sampler"] == sampler and r["channels"] == c_main and r["scene"] == sc["scene"]
                      and r["width"] == sc["width"])
