@@ -148,11 +148,13 @@ def rasterize(means, quats, scales, opacities, features, viewmat, K, width: int,
         viewmat: [4,4] world-to-camera (OpenCV axes: x right, y down, z forward).
         K: [3,3] intrinsics in pixels. width, height: image size in pixels.
         sampler: "volume" (full alpha blending, V-Render), "quantile" (Q-Render, Algorithm 1 with
-            K = ``k``) or "topk" (the ``k`` largest V-Render weights, blended as Q-Render does).
+            K = ``k``), "topk" (the ``k`` largest V-Render weights, blended as Q-Render does) or
+            "stratified" (Stratified-K, App. E: Algorithm 1 with boundaries at the quantiles of a
+            normal fitted to the ray's transmittance; see :mod:`qr_cl.stages.select`).
             For the fused V-Render kernel (no stored selection) call :func:`render_volume_fused`.
         near, far: depth culling planes (camera z, world units).
         background: [C] blended with the background weight of each ray, or None (black): the
-            remaining transmittance for volume; for quantile/topk (whose normalized weights sum
+            remaining transmittance for volume; for the K samplers (whose normalized weights sum
             to 1) it shows only through rays that selected no Gaussian.
         pixels: None (the whole image) or [P,2] integer (x, y) pixel coordinates: render only those
             rays (cost proportional to P).
