@@ -38,13 +38,15 @@ __kernel void blend(__global const int *offsets, __global const int *count,
 }
 
 /* Backward gather: dF[g, chunk] = sum over Gaussian g's transposed entries of w dImage[p, chunk],
-   in the fixed order of the transpose. One work-item per (Gaussian, channel chunk). */
-__kernel void blend_backward(const int n, const int n_chunks, __global const int *cursor,
+   in the fixed order of the transpose. One work-item per (Gaussian, channel chunk), Gaussians
+   taken in the order ``order`` (by their first ray, so neighbours read neighbouring rows). */
+__kernel void blend_backward(const int n, __global const int *order,   /* [N] Gaussian of each work-item */
+                             const int n_chunks, __global const int *cursor,
                              __global const int *t_ray, __global const float *t_w,
                              __global const float *dimage,   /* [P, cstride] */
                              const int cstride, __global float *dfeatures) {   /* [N, cstride] */
-    const int g = get_global_id(0);
-    if (g >= n) return;
+    if (get_global_id(0) >= n) return;
+    const int g = order[get_global_id(0)];
     const int c0 = get_global_id(1) * NV * VW;
     const int start = g ? cursor[g * n_chunks - 1] : 0;
     const int end = cursor[(g + 1) * n_chunks - 1];
