@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pyopencl.array as cla
 
-from ..runtime import TILE, channel_layout, check_buffer, device_empty, padded_vector, to_device
+from ..runtime import channel_layout, check_buffer, device_empty, padded_vector, to_device
 from .select import Selection
 
 
@@ -49,22 +49,6 @@ def blend_forward(sel: Selection, features: cla.Array, channels: int,
     return image
 
 
-def gaussian_order(sel: Selection) -> cla.Array:
-    """The Gaussians [N] int32 ordered by the tile, then the ray, of the first ray of their
-    transposed entries (Gaussians without entries last): neighbouring work-items of the backward
-    then gather neighbouring rows of dImage."""
-    rt = sel.plan.runtime
-    cursor, t_ray, _, chunks = sel.transpose()
-    ends = cursor.get().reshape(-1, chunks)[:, -1].astype(np.int64)
-    starts = np.concatenate([[0], ends[:-1]])
-    first = cla.take(t_ray, to_device(rt, np.minimum(starts, max(t_ray.size - 1, 0)), np.int32)).get()
-    plan = sel.plan
-    xy = (np.stack([first % plan.width, first // plan.width], 1) if sel.pixels is None
-          else sel.pixels[np.minimum(first, max(len(sel.pixels) - 1, 0))])
-    tile = np.where(ends > starts, (xy[:, 1] // TILE) * plan.tiles_x + xy[:, 0] // TILE, np.iinfo(np.int32).max)
-    return to_device(rt, np.lexsort((first, tile)), np.int32)
-
-
 def blend_backward(sel: Selection, dimage: cla.Array, channels: int, out: cla.Array | None = None) -> cla.Array:
     """dF [N, cstride] with dF[g] = sum over entries (p, j) with id[p,j] = g of w[p,j] dimage[p].
 
@@ -81,6 +65,7 @@ def blend_backward(sel: Selection, dimage: cla.Array, channels: int, out: cla.Ar
     dfeatures = device_empty(rt, (sel.n_gaussians, cstride), np.float32) if out is None else out
     _check_rows(dfeatures, sel.n_gaussians, cstride, "out")
     rt.launch("blend_backward", (sel.n_gaussians, cstride // (vw * nv)), defines={"VW": vw, "NV": nv},
-              n=sel.n_gaussians, order=gaussian_order(sel), n_chunks=chunks, cursor=cursor, t_ray=t_ray, t_w=t_w, dimage=dimage, cstride=cstride,
+              n=sel.n_gaussians, order=sel.backward_order(), n_chunks=chunks, cursor=cursor, t_ray=t_ray,
+              t_w=t_w, dimage=dimage, cstride=cstride,
               dfeatures=dfeatures)
     return dfeatures

@@ -63,6 +63,7 @@ class Selection:
     t_sel: cla.Array
     t_rem: cla.Array
     transposed: tuple | None = field(default=None, repr=False)
+    order: cla.Array | None = field(default=None, repr=False)
 
     @property
     def n_rays(self) -> int:
@@ -76,7 +77,7 @@ class Selection:
     def nbytes(self) -> int:
         """Device bytes held by the selection (and its cached transpose)."""
         arrays = [self.ids, self.weights, self.offsets, self.count, self.t_walk, self.t_sel, self.t_rem]
-        arrays += [a for a in self.transposed or () if isinstance(a, cla.Array)]
+        arrays += [a for a in (*(self.transposed or ()), self.order) if isinstance(a, cla.Array)]
         return sum(a.nbytes for a in arrays)
 
     def launch(self) -> tuple[int, int]:
@@ -85,8 +86,9 @@ class Selection:
 
     def transpose(self) -> tuple[cla.Array, cla.Array, cla.Array, int]:
         """The entries grouped by Gaussian (transpose.cl, no float atomics), computed once and kept
-        in ``transposed``: a counting sort by a few long work-items on CPU-shaped runtimes, a
-        device sort of (Gaussian, entry) keys on GPU-shaped ones; the same bytes either way.
+        in ``transposed`` (and :meth:`backward_order` in ``order``): a counting sort by a few long
+        work-items on CPU-shaped runtimes, a device sort of (Gaussian, entry) keys on GPU-shaped
+        ones; the same bytes either way.
 
         Returns (cursor [N * chunks] int32: cursor[(g+1) * chunks - 1] is the end of Gaussian g's
         segment, ray [E] int32 and weight [E] float32 per transposed entry, chunks). Within a
@@ -94,7 +96,16 @@ class Selection:
         """
         if self.transposed is None:
             self.transposed = (_transpose_sorted if self.plan.runtime.gpu_shaped else _transpose_counted)(self)
+            self.order = _backward_order(self, *self.transposed)
         return self.transposed
+
+    def backward_order(self) -> cla.Array:
+        """The Gaussians [N] int32 in the order the blend backward takes them: by the tile, then
+        the ray, of the first ray of their transposed entries (Gaussians without entries last),
+        so neighbouring work-items gather neighbouring rows of dImage. Made with the transpose,
+        by host work only (a training step's next transpose runs on another thread)."""
+        self.transpose()
+        return self.order
 
     def host(self) -> dict[str, np.ndarray]:
         """Host copies as dense arrays: ids [P,L] (-1 padded) and weights [P,L] (0 padded) with L the
@@ -150,6 +161,19 @@ def _transpose_counted(sel: Selection) -> tuple[cla.Array, cla.Array, cla.Array,
         rt.launch("transpose_fill", chunks, **args, sel_w=sel.weights, cursor=cursor,
                   t_ray=t_ray, t_w=t_w)
     return cursor, t_ray, t_w, chunks
+
+
+def _backward_order(sel: Selection, cursor: cla.Array, t_ray: cla.Array, t_w: cla.Array,
+                    chunks: int) -> cla.Array:
+    """See :meth:`Selection.backward_order`."""
+    plan = sel.plan
+    ends = cursor.get().reshape(-1, chunks)[:, -1].astype(np.int64)
+    starts = np.concatenate([[0], ends[:-1]])
+    first = t_ray.get()[np.minimum(starts, t_ray.size - 1)]
+    xy = (np.stack([first % plan.width, first // plan.width], 1) if sel.pixels is None
+          else sel.pixels[np.minimum(first, max(len(sel.pixels) - 1, 0))])
+    tile = np.where(ends > starts, (xy[:, 1] // TILE) * plan.tiles_x + xy[:, 0] // TILE, np.iinfo(np.int32).max)
+    return to_device(plan.runtime, np.lexsort((first, tile)), np.int32)
 
 
 @lru_cache(maxsize=None)
