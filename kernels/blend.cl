@@ -60,3 +60,85 @@ __kernel void blend_backward(const int n, __global const int *order,   /* [N] Ga
     __global float *out = dfeatures + (size_t)g * cstride + c0;
     for (int v = 0; v < NV; v++) VSTORE(acc[v], v, out);
 }
+
+/* ---- gradients w.r.t. the geometry: dL/dalpha per entry, then per Gaussian splat ---- */
+
+/* Backward of the blend w.r.t. the alphas a_j of ray p's entries (depth order; recomputed from
+   the splats at the pixel centre), with g_j = dImage[p] . F[id_j]:
+   volume (normalized == 0): w_j = T_j a_j, T_j = prod_{i<j} (1 - a_i), the background weight is
+       the final T, whose gradient is d_trem[p]:
+       dL/da_j = T_j g_j - (sum_{i>j} g_i w_i + d_trem T) / (1 - a_j)
+   K samplers (normalized != 0): w_j = u_j / U with u_j = T_j a_j among the selected and
+       U = sum_j u_j (= 1 - T^Q), so dL/du_j = h_j = (g_j - sum_i g_i w_i) / U and
+       dL/da_j = T_j h_j - (sum_{i>j} h_i u_i) / (1 - a_j)
+   One work-item per ray; d_alpha has the layout of sel_ids. Rows are cstride floats. */
+__kernel void blend_backward_alpha(const int n_rays, const int full, const int width,
+                                   __global const int2 *pixels,
+                                   __global const int *offsets, __global const int *count,
+                                   __global const int *sel_ids, __global const float *sel_w,
+                                   __global const float8 *splats,
+                                   __global const float *features,   /* [N, cstride] */
+                                   __global const float *dimage,     /* [P, cstride] */
+                                   const int cstride, const int normalized,
+                                   __global const float *d_trem, __global float *d_alpha) {
+    const int p = get_global_id(0);
+    if (p >= n_rays) return;
+    const float2 pix = ray_pixel(p, full, width, pixels);
+    const int start = offsets[p], end = start + count[p];
+    __global const float *di = dimage + (size_t)p * cstride;
+    float gw = 0.f;                                   /* pass 1: g_j (kept in d_alpha), sum g w */
+    for (int j = start; j < end; j++) {
+        __global const float *f = features + (size_t)sel_ids[j] * cstride;
+        vec_t acc = (vec_t)(0.f);
+        for (int v = 0; v < cstride / VW; v++) acc += VLOAD(v, f) * VLOAD(v, di);
+        d_alpha[j] = vec_sum(acc);
+        gw += d_alpha[j] * sel_w[j];
+    }
+    float T = 1.f, U = 0.f;                           /* pass 2: the final T and U */
+    for (int j = start; j < end; j++) {
+        const float a = splat_alpha(splats[sel_ids[j]], pix.x, pix.y);
+        U += T * a;
+        T *= 1.f - a;
+    }
+    float S = normalized ? 0.f : d_trem[p] * T;      /* pass 3, back to front: S = sum_{i>j} ... */
+    for (int j = end - 1; j >= start; j--) {
+        const float a = splat_alpha(splats[sel_ids[j]], pix.x, pix.y);
+        T /= 1.f - a;                                 /* T_j */
+        const float h = normalized ? (d_alpha[j] - gw) / U : d_alpha[j];
+        d_alpha[j] = T * h - S / (1.f - a);
+        S += h * T * a;
+    }
+}
+
+/* Per Gaussian g, the gradient of its splat from dL/dalpha of its entries, summed in the fixed
+   order of the transpose: alpha = opacity exp(-sigma) (entries clamped to ALPHA_MAX have none),
+   sigma = 0.5 (A dx^2 + C dy^2) + B dx dy with (dx, dy) = mean2d - pixel centre, so
+   dL/dsigma = -alpha dL/dalpha, dsigma/dmean2d = (A dx + B dy, B dx + C dy) and
+   dsigma/d(A, B, C) = (dx^2 / 2, dx dy, dy^2 / 2). d_splats[g] = (d mean2d x, y, d A, B, C,
+   d opacity, 0, 0). One work-item per Gaussian. */
+__kernel void splat_backward(const int n, const int n_chunks, __global const int *cursor,
+                             __global const int *t_ray, __global const int *t_entry,
+                             __global const float *d_alpha, __global const float8 *splats,
+                             const int full, const int width, __global const int2 *pixels,
+                             __global float8 *d_splats) {
+    const int g = get_global_id(0);
+    if (g >= n) return;
+    const int start = g ? cursor[g * n_chunks - 1] : 0;
+    const int end = cursor[(g + 1) * n_chunks - 1];
+    const float8 s = splats[g];
+    float8 d = (float8)(0.f);
+    for (int j = start; j < end; j++) {
+        const float2 pix = ray_pixel(t_ray[j], full, width, pixels);
+        const float dx = s.s0 - pix.x, dy = s.s1 - pix.y;
+        const float e = exp(-splat_sigma(s.s2, s.s3, s.s4, dx, dy)), raw = s.s5 * e;
+        if (!(raw <= ALPHA_MAX)) continue;           /* clamped: alpha does not move */
+        const float da = d_alpha[t_entry[j]], dsig = -da * raw;
+        d.s0 += dsig * (s.s2 * dx + s.s3 * dy);
+        d.s1 += dsig * (s.s3 * dx + s.s4 * dy);
+        d.s2 += dsig * 0.5f * dx * dx;
+        d.s3 += dsig * dx * dy;
+        d.s4 += dsig * 0.5f * dy * dy;
+        d.s5 += da * e;
+    }
+    d_splats[g] = d;
+}

@@ -43,6 +43,12 @@ static inline int ray_row(int gid, int full, int n_rays, int width, int height, 
     return x < width && y < height;
 }
 
+/* The pixel centre of ray p: of the whole image (full != 0, p = y * width + x) or of pixels[p]. */
+static inline float2 ray_pixel(int p, int full, int width, __global const int2 *pixels) {
+    const int2 xy = full ? (int2)(p % width, p / width) : pixels[p];
+    return (float2)(xy.x + 0.5f, xy.y + 0.5f);
+}
+
 /* alpha'_i of a splat at pixel centre (px, py): min(0.99, opacity exp(-sigma)), or 0 when the
    Gaussian is skipped (sigma < 0 or alpha < 1/255). */
 static inline float splat_alpha(float8 s, float px, float py) {
@@ -168,6 +174,13 @@ typedef CAT(float, VW) vec_t;
 #define VLOAD(i, p) CAT(vload, VW)(i, p)
 #define VSTORE(v, i, p) CAT(vstore, VW)(v, i, p)
 #endif
+
+/* The sum of the VW lanes of v. */
+static inline float vec_sum(vec_t v) {
+    float s = 0.f;
+    for (int i = 0; i < VW; i++) s += ((__private float *)&v)[i];
+    return s;
+}
 #endif
 
 #endif

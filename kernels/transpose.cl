@@ -21,7 +21,8 @@ __kernel void transpose_count(const int n_rays, const int rays_per, const int n_
 __kernel void transpose_fill(const int n_rays, const int rays_per, const int n_chunks,
                              __global const int *offsets, __global const int *count,
                              __global const int *sel_ids, __global const float *sel_w,
-                             __global int *cursor, __global int *t_ray, __global float *t_w) {
+                             __global int *cursor, __global int *t_ray, __global float *t_w,
+                             __global int *t_entry) {
     const int c = get_global_id(0);
     const int p1 = min(n_rays, (c + 1) * rays_per);
     for (int p = c * rays_per; p < p1; p++)
@@ -29,6 +30,7 @@ __kernel void transpose_fill(const int n_rays, const int rays_per, const int n_c
             const int slot = cursor[sel_ids[j] * n_chunks + c]++;
             t_ray[slot] = p;
             t_w[slot] = sel_w[j];
+            t_entry[slot] = j;
         }
 }
 
@@ -38,11 +40,11 @@ __kernel void transpose_fill(const int n_rays, const int rays_per, const int n_c
    counting sort above, so both give identical bytes. */
 
 /* Keys of ray p's entries, numbered from compact[p] (exclusive scan of count): the sort key,
-   the entry's number (the sorted value), its ray and its weight. */
+   the entry's number (the sorted value), its ray, its weight and its index in the selection. */
 __kernel void transpose_keys(const int n_rays, __global const int *offsets, __global const int *count,
                              __global const int *compact, __global const int *sel_ids,
                              __global const float *sel_w, __global ulong *keys, __global int *values,
-                             __global int *entry_ray, __global float *entry_w) {
+                             __global int *entry_ray, __global float *entry_w, __global int *entry_index) {
     const int p = get_global_id(0);
     if (p >= n_rays) return;
     for (int j = 0; j < count[p]; j++) {
@@ -51,18 +53,21 @@ __kernel void transpose_keys(const int n_rays, __global const int *offsets, __gl
         values[c] = c;
         entry_ray[c] = p;
         entry_w[c] = sel_w[e];
+        entry_index[c] = e;
     }
 }
 
-/* After the sort: the transposed ray and weight of sorted entry i, and ends[g] = i + 1 at the
+/* After the sort: the transposed ray, weight and selection index of sorted entry i, and ends[g] = i + 1 at the
    last entry of Gaussian g's segment (0 elsewhere; a max-scan then fills the cursor). */
 __kernel void transpose_gather(const int n, __global const ulong *keys, __global const int *values,
                                __global const int *entry_ray, __global const float *entry_w,
-                               __global int *t_ray, __global float *t_w, __global int *ends) {
+                               __global const int *entry_index, __global int *t_ray, __global float *t_w,
+                               __global int *t_entry, __global int *ends) {
     const int i = get_global_id(0);
     if (i >= n) return;
     t_ray[i] = entry_ray[values[i]];
     t_w[i] = entry_w[values[i]];
+    t_entry[i] = entry_index[values[i]];
     const uint g = (uint)(keys[i] >> 32);
     if (i == n - 1 || (uint)(keys[i + 1] >> 32) != g) ends[g] = i + 1;
 }

@@ -66,7 +66,7 @@ def test_backward_is_deterministic(plan):
 
 def test_transpose_groups_entries_by_gaussian(plan):
     sel = select(plan, "quantile", 6)
-    cursor, t_ray, t_w, chunks = sel.transpose()
+    cursor, t_ray, t_w, t_entry, chunks = sel.transpose()
     ends = cursor.get()[chunks - 1::chunks]
     h = sel.host()
     counts = np.bincount(h["ids"][h["ids"] >= 0], minlength=sel.n_gaussians)
@@ -75,6 +75,11 @@ def test_transpose_groups_entries_by_gaussian(plan):
     for g in np.flatnonzero(counts)[:50]:     # ordered by ray within a Gaussian
         seg = rays[(ends[g - 1] if g else 0):ends[g]]
         assert (np.diff(seg) >= 0).all()
+    entry = t_entry.get()[:ends[-1]]                  # each transposed entry's selection index
+    owner = np.repeat(np.arange(sel.n_gaussians), counts)
+    np.testing.assert_array_equal(sel.ids.get()[entry], owner)
+    np.testing.assert_array_equal(sel.weights.get()[entry], t_w.get()[:ends[-1]])
+    np.testing.assert_array_equal(entry // 6, rays)   # quantile rows of K = 6 slots
 
 
 def test_volume_selection_blend_equals_fused(plan):

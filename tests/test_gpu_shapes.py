@@ -31,15 +31,16 @@ def test_sorted_transpose_equals_counting_sort(plan, monkeypatch, sampler, k, su
         monkeypatch.setenv("QR_CL_LAUNCH", launch)
         assert runtime().gpu_shaped == (launch == "gpu")
         sel = select(plan, sampler, k, pixels)
-        cursor, t_ray, t_w, chunks = sel.transpose()
+        cursor, t_ray, t_w, t_entry, chunks = sel.transpose()
         dimage = np.random.default_rng(2).normal(size=(sel.n_rays, 16)).astype(np.float32)
         grad = blend_backward(sel, cla.to_device(runtime().queue, dimage), 16).get()
-        shapes[launch] = segment_ends(cursor.get(), chunks), t_ray.get(), t_w.get(), chunks, grad
-    (ends, ray, w, chunks, grad), (g_ends, g_ray, g_w, g_chunks, g_grad) = shapes["cpu"], shapes["gpu"]
+        shapes[launch] = segment_ends(cursor.get(), chunks), t_ray.get(), t_w.get(), t_entry.get(), chunks, grad
+    (ends, ray, w, entry, chunks, grad), (g_ends, g_ray, g_w, g_entry, g_chunks, g_grad) = shapes["cpu"], shapes["gpu"]
     assert chunks > 1 and g_chunks == 1                 # two different algorithms ...
     np.testing.assert_array_equal(g_ends, ends)         # ... the same transpose
     np.testing.assert_array_equal(g_ray[:ends[-1]], ray[:ends[-1]])
     np.testing.assert_array_equal(g_w[:ends[-1]], w[:ends[-1]])
+    np.testing.assert_array_equal(g_entry[:ends[-1]], entry[:ends[-1]])
     assert g_grad.tobytes() == grad.tobytes()
 
 

@@ -61,11 +61,59 @@ def blend_backward(sel: Selection, dimage: cla.Array, channels: int, out: cla.Ar
     vw, nv, cstride = channel_layout(channels, rt.gpu_shaped)
     _check_rows(dimage, sel.n_rays, cstride, "dimage")
     check_buffer(rt, 4 * sel.n_gaussians * cstride, f"dF of {sel.n_gaussians} Gaussians x {cstride} channels")
-    cursor, t_ray, t_w, chunks = sel.transpose()
+    t = sel.transpose()
     dfeatures = device_empty(rt, (sel.n_gaussians, cstride), np.float32) if out is None else out
     _check_rows(dfeatures, sel.n_gaussians, cstride, "out")
     rt.launch("blend_backward", (sel.n_gaussians, cstride // (vw * nv)), defines={"VW": vw, "NV": nv},
-              n=sel.n_gaussians, order=sel.backward_order(), n_chunks=chunks, cursor=cursor, t_ray=t_ray,
-              t_w=t_w, dimage=dimage, cstride=cstride,
-              dfeatures=dfeatures)
+              n=sel.n_gaussians, order=sel.backward_order(), n_chunks=t.chunks, cursor=t.cursor, t_ray=t.ray,
+              t_w=t.weight, dimage=dimage, cstride=cstride, dfeatures=dfeatures)
     return dfeatures
+
+
+def _ray_pixels(sel: Selection) -> dict:
+    """The ray -> pixel arguments (full, width, pixels) of blend.cl's geometry backward kernels."""
+    rt = sel.plan.runtime
+    pixels = np.zeros((1, 2), np.int32) if sel.pixels is None else sel.pixels
+    return dict(full=int(sel.pixels is None), width=sel.plan.width, pixels=to_device(rt, pixels, np.int32))
+
+
+def blend_backward_alpha(sel: Selection, features: cla.Array, dimage: cla.Array, channels: int,
+                         d_trem: np.ndarray | None = None) -> cla.Array:
+    """dL/dalpha per selection entry [E] float32 (the layout of ``sel.ids``): the blend's backward
+    w.r.t. the alphas of the selected Gaussians, recomputed from the plan's splats (see
+    ``blend_backward_alpha`` in kernels/blend.cl for the formulas of volume and of the normalized
+    K samplers).
+
+    features: float32 [N, cstride] device rows the image was blended from; dimage: float32
+    [P, cstride] device rows of dL/dimage; d_trem: [P] dL/d(final transmittance) of each ray
+    (volume only: the background weight and 1 - alpha; None = 0; ignored by the K samplers, whose
+    background weight does not depend on the alphas).
+    """
+    rt = sel.plan.runtime
+    vw, _, cstride = channel_layout(channels, rt.gpu_shaped)
+    _check_rows(features, sel.n_gaussians, cstride, "features")
+    _check_rows(dimage, sel.n_rays, cstride, "dimage")
+    d_alpha = device_empty(rt, sel.ids.shape, np.float32)
+    if sel.n_rays == 0:
+        return d_alpha
+    d_trem = np.zeros(sel.n_rays, np.float32) if d_trem is None else np.asarray(d_trem, np.float32)
+    rt.launch("blend_backward_alpha", sel.n_rays, defines={"VW": vw, "NV": 1}, n_rays=sel.n_rays,
+              **_ray_pixels(sel), offsets=sel.offsets, count=sel.count, sel_ids=sel.ids, sel_w=sel.weights,
+              splats=sel.plan.splats, features=features, dimage=dimage, cstride=cstride,
+              normalized=int(sel.sampler != "volume"), d_trem=to_device(rt, d_trem, np.float32),
+              d_alpha=d_alpha)
+    return d_alpha
+
+
+def splat_backward(sel: Selection, d_alpha: cla.Array) -> cla.Array:
+    """dL/dsplat [N, 8] float32 (d mean2d x, y in px; d conic A, B, C; d opacity; 0; 0) from
+    dL/dalpha per selection entry (:func:`blend_backward_alpha`), summed per Gaussian over the
+    selection's transpose in a fixed order (bitwise reproducible). Entries whose alpha was
+    clamped to ALPHA_MAX contribute nothing."""
+    rt = sel.plan.runtime
+    t = sel.transpose()
+    d_splats = device_empty(rt, (sel.n_gaussians, 8), np.float32)
+    rt.launch("splat_backward", sel.n_gaussians, defines={"VW": 1, "NV": 1}, n=sel.n_gaussians, n_chunks=t.chunks, cursor=t.cursor,
+              t_ray=t.ray, t_entry=t.entry, d_alpha=d_alpha, splats=sel.plan.splats, **_ray_pixels(sel),
+              d_splats=d_splats)
+    return d_splats

@@ -34,3 +34,20 @@ def project(rt: Runtime, means: cla.Array, quats: cla.Array, scales: cla.Array, 
               near=near, far=far, tiles_x=tiles_x, tiles_y=tiles_y,
               splats=splats, radii=radii, rects=rects, tiles_touched=touched)
     return splats, radii, rects, touched
+
+
+def project_backward(rt: Runtime, means: cla.Array, quats: cla.Array, scales: cla.Array, radii: cla.Array,
+                     viewmat: np.ndarray, K: np.ndarray, width: int, height: int, d_splats: cla.Array
+                     ) -> tuple[cla.Array, cla.Array, cla.Array, cla.Array]:
+    """The projection's backward (project_backward in project.cl): dL/dsplats [N,8] (d mean2d x, y
+    px; d conic A, B, C; d opacity) -> (d means [N,3], d quats [N,4] of the unit-quaternion
+    rotation formula, d scales [N,3], d opacities [N]), float32 device arrays; zero for culled
+    Gaussians (radii 0). Inputs as :func:`project`."""
+    n = means.shape[0]
+    d_means, d_scales = device_empty(rt, (n, 3), np.float32), device_empty(rt, (n, 3), np.float32)
+    d_quats, d_opacities = device_empty(rt, (n, 4), np.float32), device_empty(rt, n, np.float32)
+    rt.launch("project_backward", n, n=n, means=means, quats=quats, scales=scales,
+              viewmat=to_device(rt, np.asarray(viewmat, np.float32).reshape(16)),
+              fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], width=width, height=height, radii=radii,
+              d_splats=d_splats, d_means=d_means, d_quats=d_quats, d_scales=d_scales, d_opacities=d_opacities)
+    return d_means, d_quats, d_scales, d_opacities

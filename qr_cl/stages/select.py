@@ -19,6 +19,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from functools import lru_cache
+from typing import NamedTuple
 
 import numpy as np
 import pyopencl as cl
@@ -35,6 +36,18 @@ from .binning import RasterPlan, sort_pairs
 BLOCK_GROUP = (TILE,)
 CHUNKS_PER_CORE = 4          # the CPU transpose splits the rays into this many chunks per compute unit
 MAX_HIST = 1 << 24            # ... and n_gaussians * chunks stays below this many ints
+
+
+class Transpose(NamedTuple):
+    """A Selection's entries grouped by Gaussian (:meth:`Selection.transpose`): cursor [N * chunks]
+    int32 (cursor[(g+1) * chunks - 1] is the end of Gaussian g's segment), and per transposed
+    entry its ray [E] int32, weight [E] float32 and index [E] int32 into the selection's ids."""
+
+    cursor: cla.Array
+    ray: cla.Array
+    weight: cla.Array
+    entry: cla.Array
+    chunks: int
 
 
 @dataclass
@@ -62,7 +75,7 @@ class Selection:
     t_walk: cla.Array
     t_sel: cla.Array
     t_rem: cla.Array
-    transposed: tuple | None = field(default=None, repr=False)
+    transposed: Transpose | None = field(default=None, repr=False)
     order: cla.Array | None = field(default=None, repr=False)
 
     @property
@@ -84,19 +97,17 @@ class Selection:
         """(global size of a per-ray kernel, full-image flag)."""
         return ray_launch(self.plan, self.pixels)
 
-    def transpose(self) -> tuple[cla.Array, cla.Array, cla.Array, int]:
+    def transpose(self) -> Transpose:
         """The entries grouped by Gaussian (transpose.cl, no float atomics), computed once and kept
         in ``transposed`` (and :meth:`backward_order` in ``order``): a counting sort by a few long
         work-items on CPU-shaped runtimes, a device sort of (Gaussian, entry) keys on GPU-shaped
         ones; the same bytes either way.
 
-        Returns (cursor [N * chunks] int32: cursor[(g+1) * chunks - 1] is the end of Gaussian g's
-        segment, ray [E] int32 and weight [E] float32 per transposed entry, chunks). Within a
-        Gaussian, entries are ordered by ray then by position in the ray.
+        Within a Gaussian, entries are ordered by ray then by position in the ray.
         """
         if self.transposed is None:
             self.transposed = (_transpose_sorted if self.plan.runtime.gpu_shaped else _transpose_counted)(self)
-            self.order = _backward_order(self, *self.transposed)
+            self.order = _backward_order(self, self.transposed)
         return self.transposed
 
     def backward_order(self) -> cla.Array:
@@ -140,7 +151,7 @@ def check_pixels(pixels, width: int, height: int) -> np.ndarray:
     return np.ascontiguousarray(arr, np.int32)
 
 
-def _transpose_counted(sel: Selection) -> tuple[cla.Array, cla.Array, cla.Array, int]:
+def _transpose_counted(sel: Selection) -> Transpose:
     """CPU-shaped transpose (transpose_count / transpose_fill): a stable counting sort by a few
     long work-items, each owning a contiguous chunk of rays."""
     rt = sel.plan.runtime
@@ -153,23 +164,23 @@ def _transpose_counted(sel: Selection) -> tuple[cla.Array, cla.Array, cla.Array,
     total = int(cla.sum(sel.count[:n_rays]).get()) if n_rays else 0
     t_ray = device_empty(rt, max(total, 1), np.int32)
     t_w = device_empty(rt, max(total, 1), np.float32)
+    t_entry = device_empty(rt, max(total, 1), np.int32)
     if n_rays:
         args = dict(n_rays=n_rays, rays_per=rays_per, n_chunks=chunks, offsets=sel.offsets,
                     count=sel.count, sel_ids=sel.ids)
         rt.launch("transpose_count", chunks, **args, hist=cursor)
         exclusive_scan(rt, cursor)
         rt.launch("transpose_fill", chunks, **args, sel_w=sel.weights, cursor=cursor,
-                  t_ray=t_ray, t_w=t_w)
-    return cursor, t_ray, t_w, chunks
+                  t_ray=t_ray, t_w=t_w, t_entry=t_entry)
+    return Transpose(cursor, t_ray, t_w, t_entry, chunks)
 
 
-def _backward_order(sel: Selection, cursor: cla.Array, t_ray: cla.Array, t_w: cla.Array,
-                    chunks: int) -> cla.Array:
+def _backward_order(sel: Selection, t: Transpose) -> cla.Array:
     """See :meth:`Selection.backward_order`."""
     plan = sel.plan
-    ends = cursor.get().reshape(-1, chunks)[:, -1].astype(np.int64)
+    ends = t.cursor.get().reshape(-1, t.chunks)[:, -1].astype(np.int64)
     starts = np.concatenate([[0], ends[:-1]])
-    first = t_ray.get()[np.minimum(starts, t_ray.size - 1)]
+    first = t.ray.get()[np.minimum(starts, t.ray.size - 1)]
     xy = (np.stack([first % plan.width, first // plan.width], 1) if sel.pixels is None
           else sel.pixels[np.minimum(first, max(len(sel.pixels) - 1, 0))])
     tile = np.where(ends > starts, (xy[:, 1] // TILE) * plan.tiles_x + xy[:, 0] // TILE, np.iinfo(np.int32).max)
@@ -181,7 +192,7 @@ def _max_scan(context: cl.Context) -> InclusiveScanKernel:
     return InclusiveScanKernel(context, np.int32, "max(a, b)", "0")
 
 
-def _transpose_sorted(sel: Selection) -> tuple[cla.Array, cla.Array, cla.Array, int]:
+def _transpose_sorted(sel: Selection) -> Transpose:
     """GPU-shaped transpose (transpose_keys -> device sort -> transpose_gather -> max-scan): one
     work-item per ray or entry; the same entries in the same order as :func:`_transpose_counted`,
     with one chunk (cursor[g] = the end of Gaussian g's segment)."""
@@ -190,17 +201,20 @@ def _transpose_sorted(sel: Selection) -> tuple[cla.Array, cla.Array, cla.Array, 
     total = last_value(compact) + last_value(sel.count[:max(n_rays, 1)]) if n_rays else 0
     cursor = device_zeros(rt, n, np.int32)
     t_ray, t_w = device_empty(rt, max(total, 1), np.int32), device_empty(rt, max(total, 1), np.float32)
+    t_entry = device_empty(rt, max(total, 1), np.int32)
     if total:
         keys, values = device_empty(rt, total, np.uint64), device_empty(rt, total, np.int32)
         entry_ray, entry_w = device_empty(rt, total, np.int32), device_empty(rt, total, np.float32)
+        entry_index = device_empty(rt, total, np.int32)
         rt.launch("transpose_keys", n_rays, n_rays=n_rays, offsets=sel.offsets, count=sel.count,
                   compact=compact, sel_ids=sel.ids, sel_w=sel.weights, keys=keys, values=values,
-                  entry_ray=entry_ray, entry_w=entry_w)
+                  entry_ray=entry_ray, entry_w=entry_w, entry_index=entry_index)
         keys, values = sort_pairs(rt, keys, values, 32 + max(1, int(n - 1).bit_length()))
         rt.launch("transpose_gather", total, n=total, keys=keys, values=values, entry_ray=entry_ray,
-                  entry_w=entry_w, t_ray=t_ray, t_w=t_w, ends=cursor)
+                  entry_w=entry_w, entry_index=entry_index, t_ray=t_ray, t_w=t_w, t_entry=t_entry,
+                  ends=cursor)
         _max_scan(rt.context)(cursor)
-    return cursor, t_ray, t_w, 1
+    return Transpose(cursor, t_ray, t_w, t_entry, 1)
 
 
 def ray_launch(plan: RasterPlan, pixels: np.ndarray | None) -> tuple[int, int]:
