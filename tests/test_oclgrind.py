@@ -118,6 +118,15 @@ def exercise() -> None:
                       " forward+backward: ok", flush=True)
     assert densest > 32, f"the dense stack must give a ray more than 32 Gaussians, got {densest}"
 
+    viewmats, Ks = torch.from_numpy(cam.viewmat)[None], torch.from_numpy(cam.K)[None]
+    for sampler in ("volume", "quantile"):                    # gradients w.r.t. the Gaussians
+        inputs = [torch.from_numpy(a).requires_grad_(True) for a in (*geo, feats, bg)]
+        img, alpha, _ = qr_cl.rasterization(*inputs[:5], viewmats, Ks, W, H, backgrounds=inputs[5][None],
+                                            sampler=sampler, k=4)
+        (img.sum() + (alpha.sum() if sampler == "volume" else 0)).backward()
+        assert all(bool(torch.isfinite(t.grad).all()) for t in inputs)
+        print(f"rasterization {sampler} backward w.r.t. the Gaussians: ok", flush=True)
+
     for background in (None, bg):
         img, alpha, meta = qr_cl.render_volume_fused(*geo, feats, cam.viewmat, cam.K, W, H,
                                                      background=background)

@@ -1,15 +1,22 @@
-"""torch autograd through the blend: gradients w.r.t. per-Gaussian features (and background).
+"""torch autograd through the renderer.
 
-The Gaussians are frozen in GS-Net, so the Selection (geometry) is a constant of the graph:
-no gradient flows to means, quats, scales or opacities.
+:class:`BlendFunction`: gradients w.r.t. per-Gaussian features (and background) through a given
+Selection (GS-Net: the Gaussians are frozen, so the geometry is a constant of the graph).
+:class:`RasterFunction`: the whole render of one camera, with gradients w.r.t. the Gaussians too
+(means, quats, scales, opacities; the selection itself is piecewise constant in them).
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
+import numpy as np
 import torch
 
-from ..runtime import channel_layout, check_channels, device_rows, host_empty, shared_array
-from ..stages.blend import blend_backward, blend_forward
-from ..stages.select import Selection
+from ..runtime import channel_layout, check_channels, device_rows, host_empty, shared_array, to_device
+from ..stages.blend import blend_backward, blend_backward_alpha, blend_forward, splat_backward
+from ..stages.project import project_backward
+from ..stages.select import Selection, select
+from .plan import rasterize_plan
 
 
 def _host_rows(tensor: torch.Tensor):
@@ -39,31 +46,42 @@ class BlendFunction(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, features: torch.Tensor, selection: Selection, background: torch.Tensor | None):
-        rt = selection.plan.runtime
-        channels = features.shape[1]
-        cstride = channel_layout(channels)[2]
-        bg = None if background is None else background.detach().cpu().numpy()
-        host, image = _output(selection.n_rays, channels, cstride)
-        with device_rows(rt, _host_rows(features), cstride) as rows, shared_array(rt, host, "w") as out:
-            blend_forward(selection, rows, channels, bg, out=out)
-        ctx.selection, ctx.channels = selection, channels
-        return image.to(features.dtype)
+        ctx.selection, ctx.channels = selection, features.shape[1]
+        return _blend_image(selection, features, background)
 
     @staticmethod
     def backward(ctx, grad_image: torch.Tensor):
-        sel, channels = ctx.selection, ctx.channels
-        rt = sel.plan.runtime
-        cstride = channel_layout(channels)[2]
-        d_features = d_background = None
-        if ctx.needs_input_grad[0]:
-            host, d = _output(sel.n_gaussians, channels, cstride)
-            with device_rows(rt, _host_rows(grad_image), cstride) as dimage, shared_array(rt, host, "w") as out:
-                blend_backward(sel, dimage, channels, out=out)
-            d_features = d.to(grad_image.dtype)
-        if ctx.needs_input_grad[2]:
-            t_rem = torch.from_numpy(sel.t_rem.get()[:sel.n_rays]).to(grad_image.dtype)
-            d_background = t_rem @ grad_image
+        sel = ctx.selection
+        d_features = _feature_grad(sel, grad_image, ctx.channels) if ctx.needs_input_grad[0] else None
+        d_background = _background_grad(sel, grad_image) if ctx.needs_input_grad[2] else None
         return d_features, None, d_background
+
+
+def _blend_image(sel: Selection, features: torch.Tensor, background: torch.Tensor | None) -> torch.Tensor:
+    """image [P,C] (features' dtype) of a Selection, written in place into a pooled host array."""
+    rt = sel.plan.runtime
+    channels = features.shape[1]
+    cstride = channel_layout(channels)[2]
+    bg = None if background is None else background.detach().cpu().numpy()
+    host, image = _output(sel.n_rays, channels, cstride)
+    with device_rows(rt, _host_rows(features), cstride) as rows, shared_array(rt, host, "w") as out:
+        blend_forward(sel, rows, channels, bg, out=out)
+    return image.to(features.dtype)
+
+
+def _feature_grad(sel: Selection, grad_image: torch.Tensor, channels: int) -> torch.Tensor:
+    """dL/dfeatures [N,C] by the deterministic transposed gather (blend_backward)."""
+    rt = sel.plan.runtime
+    cstride = channel_layout(channels)[2]
+    host, d = _output(sel.n_gaussians, channels, cstride)
+    with device_rows(rt, _host_rows(grad_image), cstride) as dimage, shared_array(rt, host, "w") as out:
+        blend_backward(sel, dimage, channels, out=out)
+    return d.to(grad_image.dtype)
+
+
+def _background_grad(sel: Selection, grad_image: torch.Tensor) -> torch.Tensor:
+    """dL/dbackground [C] = sum_p t_rem[p] dImage[p]."""
+    return torch.from_numpy(sel.t_rem.get()[:sel.n_rays]).to(grad_image.dtype) @ grad_image
 
 
 def blend(selection: Selection, features: torch.Tensor, background: torch.Tensor | None = None) -> torch.Tensor:
@@ -76,3 +94,94 @@ def blend(selection: Selection, features: torch.Tensor, background: torch.Tensor
     if background is not None and tuple(background.shape) != (features.shape[1],):
         raise ValueError(f"background must be [{features.shape[1]}], got {tuple(background.shape)}")
     return BlendFunction.apply(features, selection, background)
+
+
+@dataclass(frozen=True)
+class View:
+    """What :class:`RasterFunction` renders besides the Gaussians: camera (viewmat [4,4]
+    world-to-camera, K [3,3] px, width, height px, near/far camera z), sampler and K, and the rays
+    (pixels [P,2] (x, y) or None for the whole image, ray p = y * width + x)."""
+
+    viewmat: np.ndarray
+    K: np.ndarray
+    width: int
+    height: int
+    near: float = 0.01
+    far: float = 1e10
+    sampler: str = "volume"
+    k: int = 0
+    pixels: np.ndarray | None = None
+
+
+def view_selection(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
+                   view: View) -> Selection:
+    """The Selection of :class:`View` ``view`` for the Gaussians (means [N,3], unit quats [N,4],
+    scales [N,3], opacities [N]; their values only): plan, then select."""
+    geometry = [_host_rows(t) for t in (means, quats, scales, opacities)]
+    plan = rasterize_plan(*geometry, view.viewmat, view.K, view.width, view.height, view.near, view.far)
+    return select(plan, view.sampler, max(view.k, 1), view.pixels)
+
+
+class RasterFunction(torch.autograd.Function):
+    """(image [P,C], alpha [P,1]) = the render of Gaussians (means [N,3], unit quats [N,4], scales
+    [N,3], opacities [N], features [N,C], background [C] or None) for one :class:`View`, through
+    its Selection (:func:`view_selection` of the same Gaussians), as
+    :func:`qr_cl.render.rasterize`; alpha = 1 - the transmittance where the walk stopped.
+
+    Backward (deterministic: every per-Gaussian sum runs over the selection's transpose in a fixed
+    order): features and background as :class:`BlendFunction`; the geometry by
+    blend_backward_alpha (dL/dalpha per entry; for volume also through the background weight and
+    alpha = 1 - T) -> splat_backward (mean2d, conic, opacity) -> project_backward (means, quats,
+    scales, opacities). The selection is piecewise constant in the geometry and gets no gradient;
+    for the K samplers alpha is returned detached (it is the walk's T, over Gaussians the
+    selection does not keep).
+    """
+
+    @staticmethod
+    def forward(ctx, means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
+                features: torch.Tensor, background: torch.Tensor | None, selection: Selection, view: View):
+        image = _blend_image(selection, features, background)
+        t_walk = selection.t_walk.get()[:selection.n_rays]
+        alpha = torch.from_numpy(1 - t_walk[:, None]).to(features.dtype)
+        if view.sampler != "volume":
+            ctx.mark_non_differentiable(alpha)
+        ctx.selection, ctx.view = selection, view
+        ctx.save_for_backward(means, quats, scales, features, background)
+        return image, alpha
+
+    @staticmethod
+    def backward(ctx, grad_image: torch.Tensor, grad_alpha: torch.Tensor):
+        sel, view = ctx.selection, ctx.view
+        means, quats, scales, features, background = ctx.saved_tensors
+        grads = [None] * 4
+        if any(ctx.needs_input_grad[:4]):
+            geometry = [_host_rows(t) for t in (means, quats, scales)]
+            grads = _geometry_grads(sel, view, geometry, features, background, grad_image, grad_alpha)
+        d_features = _feature_grad(sel, grad_image, features.shape[1]) if ctx.needs_input_grad[4] else None
+        d_background = _background_grad(sel, grad_image) if ctx.needs_input_grad[5] else None
+        return (*grads, d_features, d_background, None, None)
+
+
+def _geometry_grads(sel: Selection, view: View, geometry: list[np.ndarray], features: torch.Tensor,
+                    background: torch.Tensor | None, grad_image: torch.Tensor, grad_alpha: torch.Tensor | None
+                    ) -> list[torch.Tensor]:
+    """[d means [N,3], d quats [N,4], d scales [N,3], d opacities [N]] of :class:`RasterFunction`
+    (geometry: the float32 host means, quats and scales)."""
+    rt = sel.plan.runtime
+    channels = features.shape[1]
+    cstride = channel_layout(channels)[2]
+    d_trem = None
+    if sel.sampler == "volume":            # dL/dT_final: the background weight and alpha = 1 - T
+        d_trem = torch.zeros(sel.n_rays, dtype=torch.float64)
+        if background is not None:
+            d_trem += (grad_image.double() @ background.detach().double())
+        if grad_alpha is not None:
+            d_trem -= grad_alpha[:, 0].double()
+        d_trem = d_trem.numpy()
+    with device_rows(rt, _host_rows(features), cstride) as rows, \
+            device_rows(rt, _host_rows(grad_image), cstride) as dimage:
+        d_alpha = blend_backward_alpha(sel, rows, dimage, channels, d_trem)
+    d_splats = splat_backward(sel, d_alpha)
+    dev = [to_device(rt, a) for a in geometry]
+    out = project_backward(rt, *dev, sel.plan.radii, view.viewmat, view.K, view.width, view.height, d_splats)
+    return [torch.from_numpy(a.get()).to(grad_image.dtype) for a in out]

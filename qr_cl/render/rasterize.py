@@ -11,13 +11,13 @@ import torch
 
 from ..runtime import (BufferLimitError, Runtime, channel_layout, check_buffer, check_channels, device_rows,
                        host_empty, runtime, to_device, trim_device_pool)
-from ..stages.binning import RasterPlan, bin_and_sort
-from ..stages.project import project
+from ..stages.binning import RasterPlan
 from ..stages.select import check_pixels, check_sampler, select
 from ..stages.sh import sh_colors
 from ..stages.vrender import render_fused
 from .autograd import blend
 from .cache import SelectionCache, selection_key
+from .plan import rasterize_plan
 
 
 def _host(x, name: str, shape: tuple) -> np.ndarray:
@@ -26,21 +26,6 @@ def _host(x, name: str, shape: tuple) -> np.ndarray:
     if a.ndim != len(shape) or any(s != -1 and s != d for s, d in zip(shape, a.shape)):
         raise ValueError(f"{name} has shape {tuple(a.shape)}, expected {tuple('N' if s == -1 else s for s in shape)}")
     return np.ascontiguousarray(a, np.float32)
-
-
-def rasterize_plan(means: np.ndarray, quats: np.ndarray, scales: np.ndarray, opacities: np.ndarray,
-                   viewmat: np.ndarray, K: np.ndarray, width: int, height: int,
-                   near: float = 0.01, far: float = 1e10, rt: Runtime | None = None) -> RasterPlan:
-    """Project, bin and sort Gaussians for one camera (geometry only).
-
-    means [N,3], quats [N,4] unit w,x,y,z, scales [N,3] activated, opacities [N] activated (float32
-    host arrays, N >= 1); viewmat [4,4] world-to-camera; K [3,3] intrinsics in px; width/height in px.
-    """
-    rt = rt or runtime()
-    dev = [to_device(rt, a) for a in (means, quats, scales, opacities)]
-    splats, radii, rects, touched = project(rt, *dev, viewmat, np.asarray(K), width, height, near, far)
-    ranges, ids, n_keys = bin_and_sort(rt, splats, rects, touched, width, height)
-    return RasterPlan(rt, int(width), int(height), splats, radii, ranges, ids, n_keys)
 
 
 def channel_groups(rt: Runtime, n: int, channels: int) -> list[slice]:

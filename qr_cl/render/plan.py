@@ -1,0 +1,23 @@
+"""The geometry of one render: project, then bin and sort (a RasterPlan)."""
+from __future__ import annotations
+
+import numpy as np
+
+from ..runtime import Runtime, runtime, to_device
+from ..stages.binning import RasterPlan, bin_and_sort
+from ..stages.project import project
+
+
+def rasterize_plan(means: np.ndarray, quats: np.ndarray, scales: np.ndarray, opacities: np.ndarray,
+                   viewmat: np.ndarray, K: np.ndarray, width: int, height: int,
+                   near: float = 0.01, far: float = 1e10, rt: Runtime | None = None) -> RasterPlan:
+    """Project, bin and sort Gaussians for one camera (geometry only).
+
+    means [N,3], quats [N,4] unit w,x,y,z, scales [N,3] activated, opacities [N] activated (float32
+    host arrays, N >= 1); viewmat [4,4] world-to-camera; K [3,3] intrinsics in px; width/height in px.
+    """
+    rt = rt or runtime()
+    dev = [to_device(rt, a) for a in (means, quats, scales, opacities)]
+    splats, radii, rects, touched = project(rt, *dev, viewmat, np.asarray(K), width, height, near, far)
+    ranges, ids, n_keys = bin_and_sort(rt, splats, rects, touched, width, height)
+    return RasterPlan(rt, int(width), int(height), splats, radii, ranges, ids, n_keys)
