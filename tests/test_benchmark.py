@@ -24,8 +24,11 @@ def test_report_has_every_stage_and_baseline(report_dir):
             assert (stage, sampler) in stages
     for expected in [("projection", "-"), ("binning+sort", "-"), ("fused", "volume_fused"),
                      ("looped-3ch", "volume_fused"), ("blend-forward", "torch-embedding_bag"),
-                     ("blend-forward", "numpy")]:
+                     ("blend-forward", "numpy"), ("rasterization-forward", "volume"),
+                     ("rasterization-forward-backward", "quantile")]:
         assert expected in stages
+    grads = [r for r in report["results"] if r["stage"] == "rasterization-forward-backward"]
+    assert len(grads) == 2 and all(r["over_forward"] > 0 for r in grads)
     sizes = {(r["scene"], r["width"]) for r in report["results"]}
     assert {("synthetic-2k", 64), ("synthetic-2k", 32), ("synthetic-1k", 64)} <= sizes
     for row in report["results"]:
@@ -40,7 +43,7 @@ def test_report_has_every_stage_and_baseline(report_dir):
 def test_summary_and_plots(report_dir):
     text = (report_dir / "summary.md").read_text()
     assert "## Q-Render (K=10, C=16)" in text and "looped 3-channel" in text and "embedding_bag" in text
-    assert "## Complexity" in text
+    assert "## Complexity" in text and "## Gradients w.r.t. the Gaussians" in text
     for name in ("time_vs_k.png", "time_vs_c.png", "roofline.png", "complexity.png"):
         assert (report_dir / name).stat().st_size > 5000
 

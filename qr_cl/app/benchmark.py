@@ -26,7 +26,7 @@ from matplotlib.ticker import NullFormatter
 import torch
 from tqdm import tqdm
 
-from ..render import rasterize, render_volume_fused
+from ..render import rasterization, rasterize, render_volume_fused
 from ..runtime import SAMPLERS, channel_layout, padded_rows, runtime, to_device
 from ..scene import Gaussians, load_ply, look_at, orbit_cameras
 from ..stages import RasterPlan, bin_and_sort, blend_backward, blend_forward, project, render_fused, select
@@ -217,6 +217,26 @@ class Sweep:
         return self._row(scene, "end-to-end", sampler, k if sampler in ("quantile", "topk") else 0,
                          channels, timing, faults_per_call=warm_page_faults(call))
 
+    def gradients(self, scene: BenchScene, sampler: str, k: int) -> dict:
+        """Time :func:`qr_cl.rasterization` of RGB (from the scene's SH) forward alone and forward +
+        backward w.r.t. means, quats, scales, opacities and SH (loss: the image sum); the second
+        row carries ``over_forward``, the ratio of the two."""
+        g, cam = scene.gaussians, scene.camera
+        views = torch.from_numpy(cam.viewmat)[None], torch.from_numpy(np.asarray(cam.K, np.float32))[None]
+
+        def call(backward: bool) -> None:
+            inputs = [torch.tensor(a, requires_grad=backward) for a in (g.means, g.quats, g.scales, g.opacities, g.sh)]
+            with torch.set_grad_enabled(backward):
+                image, _, _ = rasterization(*inputs, *views, cam.width, cam.height, sh_degree=g.sh_degree,
+                                            sampler=sampler, k=k)
+                if backward:
+                    image.sum().backward()
+        k = k if sampler != "volume" else 0
+        fwd = self._row(scene, "rasterization-forward", sampler, k, 3, measure(lambda: call(False), self.rounds))
+        both = measure(lambda: call(True), self.rounds)
+        return self._row(scene, "rasterization-forward-backward", sampler, k, 3, both,
+                         over_forward=both["min_s"] / fwd["min_s"])
+
     def torch_baselines(self, scene: BenchScene, plan, k: int, channels: int, numpy_rounds: int) -> None:
         """The same blend (Q-Render's selection) with torch embedding_bag and with numpy."""
 
@@ -313,7 +333,7 @@ def run_sweep(mode: str, out: Path, data: Path | None = None) -> dict:
         per_scene = 2 + 3 * len(cfg["ks"]) * 3 + len(cfg["cs"]) * (1 + 3 * 3 + 3) if res == main_res else 2 + 4 * 3 + 4
         n_jobs += per_scene * (1 if quick else len(scenes))
     n_jobs += len(cfg["synthetic"]) * 8 + (len(cfg["layers"]) + len(cfg["layer_cs"])) * 4 * 2 + 6
-    n_jobs += 2 + 2 + 3 * len(SAMPLERS) * len(cfg["ks"]) + 2 * len(cfg["ks"]) + 1
+    n_jobs += 2 + 2 + 3 * len(SAMPLERS) * len(cfg["ks"]) + 2 * len(cfg["ks"]) + 1 + 4
     with tqdm(total=n_jobs, desc="qr-cl bench", unit="run") as bar:
         sweep = Sweep(cfg["rounds"], bar)
         sweep.limits = {"bandwidth_bytes_s": roofline.stream_bandwidth(rt, 64 if quick else 256),
@@ -335,6 +355,8 @@ def run_sweep(mode: str, out: Path, data: Path | None = None) -> dict:
                     sweep.looped_rgb(scene, plan, c, cfg["looped_rounds"])
                     sweep.torch_baselines(scene, plan, cfg["c_sweep_k"], c, cfg["numpy_rounds"])
                     sweep.end_to_end(scene, "volume_fused", 0, c)
+                    for sampler in ("volume", "quantile"):
+                        sweep.gradients(scene, sampler, cfg["ks"][0])
                 else:
                     sweep.fused(scene, plan, cfg["k_sweep_c"])
                     for sampler in SAMPLERS:
@@ -451,6 +473,20 @@ def _renderer_table(rows: list[dict]) -> list[str]:
     return lines + [""]
 
 
+def _gradient_table(rows: list[dict]) -> list[str]:
+    """Markdown lines: qr_cl.rasterization forward vs forward + backward w.r.t. the Gaussians."""
+    both = [r for r in rows if r["stage"] == "rasterization-forward-backward"]
+    if not both:
+        return []
+    lines = ["## Gradients w.r.t. the Gaussians (qr_cl.rasterization, RGB from SH)", "",
+             "| scene | WxH | sampler | K | forward | forward + backward | ratio |", "| --- " * 7 + "|"]
+    for r in both:
+        fwd = _find(rows, stage="rasterization-forward", scene=r["scene"], sampler=r["sampler"], k=r["k"])
+        lines.append(f"| {r['scene']} | {r['width']}x{r['height']} | {r['sampler']} | {r['k'] or '-'} | "
+                     f"{_ms(fwd)} | {_ms(r)} | {r['over_forward']:.2f}x |")
+    return lines + [""]
+
+
 def summary_markdown(report: dict) -> str:
     """The markdown summary: headline ratios, the per-stage table, limits and complexity fits."""
     rows, meta, lim = report["results"], report["meta"], report["limits"]
@@ -485,6 +521,7 @@ def summary_markdown(report: dict) -> str:
         lines += ["", "(blend-only baselines are compared with Q-Render's blend; the others with "
                   "Q-Render's selection + blend)", ""]
     lines += _renderer_table(rows)
+    lines += _gradient_table(rows)
     lines += ["## Per stage", "", "| scene | WxH | sampler | K | C | selection | blend fwd | blend bwd | "
               "fused | end-to-end | end-to-end page faults | blend fwd / roofline | mean entries | peak host MB |",
               "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
