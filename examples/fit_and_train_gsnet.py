@@ -1,0 +1,222 @@
+"""Fit 3D Gaussians to a real capture, then train GS-Net features on the fit: all on a CPU, no CUDA.
+
+    python examples/fit_and_train_gsnet.py [--ply ../shared/data/wakufactory-fox/fox.ply] [--out fit-and-train]
+
+1. Target images: the capture (a 3DGS PLY) rendered with qr-cl's V-Render from orbit views.
+2. Fit: a few thousand Gaussians (a random subset of the capture's centres, grey, isotropic) are
+   optimised with Adam through ``qr_cl.rasterization`` (gsplat's interface; gradients w.r.t.
+   means, quats, scales, opacities and colours) against the target images.
+3. Semantics: the capture's Gaussians are clustered by colour (k-means) into "parts"; per view a
+   mask map of the dominant part is rendered from the capture, and every mask gets a simulated
+   512-D "CLIP" feature (its part's random prototype plus noise), written in LangSplat's layout
+   beside the fitted Gaussians.
+4. GS-Net is trained on the fitted Gaussians through Q-Render (``qr_cl.app.train``), and its
+   per-Gaussian features are scored by the part each Gaussian's feature is closest to, rendered
+   into every view and compared with the capture's part masks (pixel accuracy), beside the
+   accuracy of always answering the largest part.
+
+Writes fit.png (targets | fit before | fit after), parts.png (masks | GS-Net's parts), the scene
+folder ``<out>/scene`` and the training run ``<out>/run``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import warnings
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+import qr_cl
+from qr_cl.app.data import load_scene_folder
+from qr_cl.app.evaluate import network_features
+from qr_cl.app.images import plt
+from qr_cl.app.train import TrainConfig, train
+
+DEFAULT_PLY = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "wakufactory-fox" / "fox.ply"
+FEATURE_DIM = 512
+
+
+def target_images(capture: qr_cl.Gaussians, cameras: list) -> torch.Tensor:
+    """[V,H,W,3] RGB of the capture from each camera (V-Render, SH colours)."""
+    images = [qr_cl.render_volume_fused(capture.means, capture.quats, capture.scales, capture.opacities,
+                                        capture.sh, c.viewmat, c.K, c.width, c.height,
+                                        sh_degree=capture.sh_degree)[0] for c in cameras]
+    return torch.stack(images)
+
+
+def gaussians(params: dict[str, torch.Tensor]) -> qr_cl.Gaussians:
+    """The Gaussians of the fit's parameters (unit quaternions, activated scales, opacities)."""
+    with torch.no_grad():
+        quats = params["quats"] / params["quats"].norm(dim=1, keepdim=True)
+        return qr_cl.Gaussians.from_rgb(params["means"].numpy().copy(), quats.numpy(),
+                                        params["log_scales"].exp().numpy(),
+                                        torch.sigmoid(params["logit_opacities"]).numpy(),
+                                        params["colours"].clamp(0, 1).numpy())
+
+
+def fit(capture: qr_cl.Gaussians, cameras: list, targets: torch.Tensor, n: int, steps: int,
+        seed: int) -> tuple[qr_cl.Gaussians, qr_cl.Gaussians, list[float]]:
+    """``n`` Gaussians fitted to ``targets`` by Adam through qr_cl.rasterization (two views per
+    step); returns them before and after the fit, and the PSNR (dB) of every step."""
+    rng = np.random.default_rng(seed)
+    start = capture.means[rng.choice(len(capture), n, replace=False)]
+    extent = np.percentile(capture.means, 98, 0) - np.percentile(capture.means, 2, 0)
+    params = {"means": torch.tensor(start, requires_grad=True),
+              "quats": torch.tensor(np.tile([1.0, 0, 0, 0], (n, 1)), dtype=torch.float32, requires_grad=True),
+              "log_scales": torch.full((n, 3), float(np.log(extent.mean() / n ** (1 / 3))), requires_grad=True),
+              "logit_opacities": torch.zeros(n, requires_grad=True),
+              "colours": torch.full((n, 3), 0.5, requires_grad=True)}
+    rates = {"means": 2e-3 * float(extent.mean()), "quats": 1e-2, "log_scales": 1e-2, "logit_opacities": 5e-2,
+             "colours": 2e-2}
+    opt = torch.optim.Adam([{"params": [p], "lr": rates[k]} for k, p in params.items()])
+    viewmats = torch.from_numpy(np.stack([c.viewmat for c in cameras]))
+    Ks = torch.from_numpy(np.stack([c.K for c in cameras]).astype(np.float32))
+    w, h = cameras[0].width, cameras[0].height
+    initial = gaussians(params)
+    psnr = []
+    bar = tqdm(range(steps), desc="fit", unit="step")
+    for step in bar:
+        views = rng.choice(len(cameras), 2, replace=False)
+        image, _, _ = qr_cl.rasterization(params["means"], params["quats"], params["log_scales"].exp(),
+                                          torch.sigmoid(params["logit_opacities"]), params["colours"],
+                                          viewmats[views], Ks[views], w, h)
+        loss = ((image - targets[views]) ** 2).mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        psnr.append(float(-10 * torch.log10(loss.detach())))
+        bar.set_postfix(psnr=f"{psnr[-1]:.1f} dB")
+    return initial, gaussians(params), psnr
+
+
+def colour_parts(capture: qr_cl.Gaussians, parts: int, seed: int) -> np.ndarray:
+    """A part id [N] per Gaussian of the capture: k-means of its base colours (SH DC term)."""
+    colours = capture.sh[:, 0].astype(np.float64)
+    rng = np.random.default_rng(seed)
+    centres = colours[rng.choice(len(colours), parts, replace=False)]
+    for _ in range(30):
+        ids = np.argmin(((colours[:, None] - centres[None]) ** 2).sum(-1), 1)
+        centres = np.stack([colours[ids == p].mean(0) if (ids == p).any() else centres[p] for p in range(parts)])
+    return ids
+
+
+def part_maps(gaussians: qr_cl.Gaussians, part: np.ndarray, parts: int, cameras: list) -> list[np.ndarray]:
+    """Per camera an [H,W] int32 map of the dominant part (-1 where the coverage is below 0.5)."""
+    onehot = np.eye(parts, dtype=np.float32)[part]
+    maps = []
+    for c in cameras:
+        image, _, _ = qr_cl.rasterize(gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities,
+                                      onehot, c.viewmat, c.K, c.width, c.height)
+        image = image.numpy()
+        maps.append(np.where(image.max(-1) >= 0.5, image.argmax(-1), -1).astype(np.int32))
+    return maps
+
+
+def write_scene_folder(folder: Path, fitted: qr_cl.Gaussians, cameras: list, maps: list[np.ndarray],
+                       prototypes: np.ndarray, seed: int) -> None:
+    """The fitted Gaussians with the capture's part masks in qr-cl's scene-folder layout (see the
+    README): point_cloud.ply, cameras.json, language_features/<view>_s.npy and _f.npy (one level,
+    a simulated feature per mask) and classes.json (a part's "text" feature is its prototype)."""
+    rng = np.random.default_rng(seed)
+    lang = folder / "language_features"
+    lang.mkdir(parents=True, exist_ok=True)
+    qr_cl.save_ply(folder / "point_cloud.ply", fitted)
+    entries = []
+    for i, (cam, part) in enumerate(zip(cameras, maps)):
+        name = f"view{i:02d}"
+        present = np.unique(part[part >= 0])
+        row = np.full(len(prototypes), -1, np.int32)
+        row[present] = np.arange(len(present))
+        noisy = prototypes[present] + 0.5 * rng.standard_normal((len(present), FEATURE_DIM)) / np.sqrt(FEATURE_DIM)
+        np.save(lang / f"{name}_s.npy", np.where(part >= 0, row[np.maximum(part, 0)], -1)[None])
+        np.save(lang / f"{name}_f.npy", (noisy / np.linalg.norm(noisy, axis=1, keepdims=True)).astype(np.float32))
+        entries.append({"id": i, "img_name": name, "width": cam.width, "height": cam.height,
+                        "position": cam.position.tolist(), "rotation": cam.viewmat[:3, :3].T.tolist(),
+                        "fx": cam.fx, "fy": cam.fy})
+    (folder / "cameras.json").write_text(json.dumps(entries))
+    classes = [{"id": p, "name": f"part {p}", "text_feature": prototypes[p].tolist()} for p in range(len(prototypes))]
+    (folder / "classes.json").write_text(json.dumps({"feature_dim": FEATURE_DIM, "classes": classes}))
+
+
+def part_accuracy(folder: Path, checkpoint: Path, maps: list[np.ndarray], prototypes: np.ndarray
+                  ) -> tuple[float, float, list[np.ndarray]]:
+    """(pixel accuracy of GS-Net's parts against the masks, accuracy of the largest part, the
+    predicted part maps): each fitted Gaussian takes the part whose prototype its GS-Net
+    feature is closest to, and the parts are rendered into every view."""
+    scene = load_scene_folder(folder)
+    part = np.argmax(network_features(checkpoint, scene) @ prototypes.T, 1)
+    predicted = part_maps(scene.gaussians, part, len(prototypes), [f.camera for f in scene.frames])
+    masked = np.concatenate([m[m >= 0] for m in maps])
+    hits = sum(int((p[m >= 0] == m[m >= 0]).sum()) for p, m in zip(predicted, maps))
+    return hits / len(masked), np.bincount(masked).max() / len(masked), predicted
+
+
+def save_strip(path: Path, rows: list[list[np.ndarray]], titles: list[str]) -> None:
+    """A grid of images: one row per view, one column per title."""
+    fig, axes = plt.subplots(len(rows), len(titles), figsize=(3 * len(titles), 2.4 * len(rows)), squeeze=False)
+    for r, images in enumerate(rows):
+        for c, image in enumerate(images):
+            if image.ndim == 2:                       # part maps: -1 (no part) left white
+                axes[r, c].imshow(np.ma.masked_less(image, 0), cmap="tab10", vmin=0, vmax=9)
+            else:
+                axes[r, c].imshow(image)
+            axes[r, c].axis("off")
+            if r == 0:
+                axes[r, c].set_title(titles[c])
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--ply", type=Path, default=DEFAULT_PLY, help="a 3DGS capture (INRIA PLY)")
+    parser.add_argument("--out", type=Path, default=Path("fit-and-train"))
+    parser.add_argument("--gaussians", type=int, default=3000, help="Gaussians to fit")
+    parser.add_argument("--fit-steps", type=int, default=300)
+    parser.add_argument("--train-steps", type=int, default=100)
+    parser.add_argument("--views", type=int, default=8)
+    parser.add_argument("--width", type=int, default=128)
+    parser.add_argument("--parts", type=int, default=4)
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+    if not args.ply.is_file():
+        parser.error(f"{args.ply}: no such file (pass --ply with a 3DGS PLY, e.g. the fox of ../shared/data)")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        capture = qr_cl.load_ply(args.ply)
+    cameras = qr_cl.orbit_cameras(capture.means, args.views, args.width, args.width * 3 // 4)
+    args.out.mkdir(parents=True, exist_ok=True)
+
+    targets = target_images(capture, cameras)
+    initial, fitted, psnr = fit(capture, cameras, targets, args.gaussians, args.fit_steps, args.seed)
+    before, after = target_images(initial, cameras), target_images(fitted, cameras)
+    before_psnr, after_psnr = (float(-10 * torch.log10(((x - targets) ** 2).mean())) for x in (before, after))
+    print(f"fit: {len(fitted)} Gaussians, PSNR over all {len(cameras)} views {before_psnr:.1f} dB before -> "
+          f"{after_psnr:.1f} dB after {args.fit_steps} steps")
+
+    part = colour_parts(capture, args.parts, args.seed)
+    maps = part_maps(capture, part, args.parts, cameras)
+    prototypes = np.random.default_rng(args.seed + 1).standard_normal((args.parts, FEATURE_DIM))
+    prototypes /= np.linalg.norm(prototypes, axis=1, keepdims=True)
+    write_scene_folder(args.out / "scene", fitted, cameras, maps, prototypes, args.seed)
+    cfg = TrainConfig(scenes=[str(args.out / "scene")], out=str(args.out / "run"), steps=args.train_steps,
+                      views=2, rays=512, sampler="quantile", k=10, grid_size=float(np.ptp(fitted.means, 0).max()) / 40,
+                      checkpoint_every=args.train_steps)
+    train(cfg)
+    accuracy, largest, predicted = part_accuracy(args.out / "scene", args.out / "run" / "checkpoint.pt", maps, prototypes)
+    print(f"GS-Net on the fitted Gaussians: part pixel accuracy {accuracy:.1%} (largest part alone: {largest:.1%})")
+
+    shown = range(0, len(cameras), max(1, len(cameras) // 3))
+    save_strip(args.out / "fit.png", [[x[v].clamp(0, 1).numpy() for x in (targets, before, after)] for v in shown],
+               ["capture (target)", f"{len(fitted)} Gaussians before", f"after {args.fit_steps} steps"])
+    save_strip(args.out / "parts.png", [[maps[v], predicted[v]] for v in shown],
+               ["capture's parts (masks)", "GS-Net on the fit"])
+    print(f"wrote {args.out / 'fit.png'}, {args.out / 'parts.png'}")
+
+
+if __name__ == "__main__":
+    main()
