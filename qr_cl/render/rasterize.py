@@ -162,7 +162,8 @@ def rasterize(means, quats, scales, opacities, features, viewmat, K, width: int,
         The render is differentiable w.r.t. ``features`` (a [N,C] tensor with requires_grad) and
         ``background`` through :class:`qr_cl.render.autograd.BlendFunction`. No gradient is
         produced for means, quats, scales, opacities, viewmat or K (the Gaussians are frozen in
-        GS-Net), nor for SH coefficients (``sh_degree`` set).
+        GS-Net), nor for SH coefficients (``sh_degree`` set): :func:`qr_cl.rasterization`
+        renders with gradients w.r.t. the Gaussians.
     """
     k = check_sampler(sampler, k)
     if pixels is not None:
