@@ -218,3 +218,21 @@ def test_fit_a_small_scene(random_scene):
         losses.append(loss.item())
     psnr = [10 * np.log10(1 / x) for x in (losses[0], losses[-1])]
     assert losses[-1] < 0.3 * losses[0] and psnr[1] > psnr[0] + 5, (losses[0], losses[-1])
+
+
+def test_per_camera_colours_and_no_gaussians(random_scene):
+    m, q, s, o, v, K, w, h = random_scene
+    colors = np.random.default_rng(7).random((2, len(m), 4)).astype(np.float32)
+    viewmats, Ks = turned_cameras(v, K)
+    image, _, _ = qr_cl.rasterization(*tensors(m, q, s, o), torch.from_numpy(colors), viewmats, Ks, w, h)
+    for c in range(2):
+        single, _, _ = qr_cl.rasterization(*tensors(m, q, s, o, colors[c]), viewmats[c:c + 1], Ks[c:c + 1], w, h)
+        torch.testing.assert_close(image[c], single[0])
+    bg = torch.tensor([[0.2, 0.4, 0.6, 0.8]] * 2)
+    empty = [torch.zeros(0, 3), torch.zeros(0, 4), torch.zeros(0, 3), torch.zeros(0)]
+    image, alpha, meta = qr_cl.rasterization(*empty, torch.zeros(0, 4), viewmats, Ks, w, h, backgrounds=bg,
+                                             render_mode="RGB+D")
+    assert image.shape == (2, h, w, 5) and (image[..., :4] == bg[:, None, None]).all() and (image[..., 4] == 0).all()
+    assert (alpha == 0).all() and meta["radii"].shape == (2, 0)
+    with pytest.raises(ValueError, match="quats has shape"):
+        qr_cl.rasterization(*tensors(m, q[:, :3], s, o, colors[0]), viewmats, Ks, w, h)

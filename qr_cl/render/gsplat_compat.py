@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..runtime import SAMPLERS, TILE
+from ..runtime import TILE
 from ..stages.select import check_sampler
 from ..stages.sh_ref import sh_to_rgb
 from .autograd import RasterFunction, View, view_selection
@@ -69,6 +69,39 @@ def _colours(colors: torch.Tensor, means: torch.Tensor, viewmat: torch.Tensor, s
     return sh_to_rgb(means, colors[:, :(sh_degree + 1) ** 2], -R.T @ t)
 
 
+def _check_gaussians(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor) -> None:
+    n = means.shape[0] if means.ndim == 2 else -1
+    for name, t, shape in (("means", means, (n, 3)), ("quats", quats, (n, 4)), ("scales", scales, (n, 3)),
+                           ("opacities", opacities, (n,))):
+        if tuple(t.shape) != shape or n < 0:
+            raise ValueError(f"{name} has shape {tuple(t.shape)}, expected {tuple('N' if d == n else d for d in shape)}"
+                             f" (N = {n} Gaussians, from means [N, 3])")
+
+
+def _with_depth(background: torch.Tensor | None, render_mode: str) -> torch.Tensor | None:
+    """A camera's background [D] for ``render_mode``: with a 0 for the depth channel (and only that
+    for "D" and "ED")."""
+    if background is None or render_mode == "RGB":
+        return background
+    colour = background[:0] if render_mode in ("D", "ED") else background
+    return torch.cat([colour, background.new_zeros(1)])
+
+
+def _empty(n_cameras: int, width: int, height: int, channels: int, backgrounds: list) -> tuple:
+    """The render of no Gaussians: backgrounds (black if None), alpha 0, meta without Gaussians."""
+    images = torch.stack([torch.zeros(height, width, channels) if bg is None else bg.expand(height, width, channels)
+                          for bg in backgrounds])
+    tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
+    meta = {"radii": torch.zeros(n_cameras, 0, dtype=torch.int32), "means2d": torch.zeros(n_cameras, 0, 2),
+            "depths": torch.zeros(n_cameras, 0), "conics": torch.zeros(n_cameras, 0, 3),
+            "opacities": torch.zeros(n_cameras, 0),
+            "isect_offsets": torch.zeros(n_cameras, tiles_y, tiles_x, dtype=torch.int32),
+            "flatten_ids": [torch.zeros(0, dtype=torch.int32)] * n_cameras, "tile_width": tiles_x,
+            "tile_height": tiles_y, "tile_size": TILE, "width": width, "height": height, "n_cameras": n_cameras,
+            "selections": []}
+    return images, torch.zeros(n_cameras, height, width, 1), meta
+
+
 def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
                   colors: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,
                   near_plane: float = 0.01, far_plane: float = 1e10, sh_degree: int | None = None,
@@ -118,28 +151,29 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
                         covars=covars, with_ut=with_ut, with_eval3d=with_eval3d))
     if render_mode not in RENDER_MODES:
         raise ValueError(f"render_mode={render_mode!r}: supported modes are {RENDER_MODES}")
-    if sampler not in SAMPLERS:
-        raise ValueError(f"sampler={sampler!r}: available samplers are {SAMPLERS}")
     k = check_sampler(sampler, k)
     n_cameras = viewmats.shape[0] if viewmats.ndim == 3 else -1
     if viewmats.ndim != 3 or viewmats.shape[1:] != (4, 4) or tuple(Ks.shape) != (n_cameras, 3, 3):
         raise ValueError(f"viewmats must be [C,4,4] and Ks [C,3,3], got {tuple(viewmats.shape)} and {tuple(Ks.shape)}")
+    _check_gaussians(means, quats, scales, opacities)
     quats = quats / quats.norm(dim=-1, keepdim=True)
     per_colors = _per_camera(colors, n_cameras, 2 if sh_degree is None else 3,
                              "colors" if sh_degree is None else f"colors (SH coefficients, sh_degree={sh_degree})")
     per_bg = [None] * n_cameras if backgrounds is None else _per_camera(backgrounds, n_cameras, 1, "backgrounds")
+    per_bg = [_with_depth(bg, render_mode) for bg in per_bg]
+    if len(means) == 0:
+        colour_channels = 3 if sh_degree is not None else colors.shape[-1]
+        channels = {"RGB": colour_channels, "D": 1, "ED": 1}.get(render_mode, colour_channels + 1)
+        return _empty(n_cameras, width, height, channels, per_bg)
     images, alphas, selections = [], [], []
     for c in range(n_cameras):
         view = View(viewmats[c].detach().cpu().numpy().astype(np.float32), Ks[c].detach().cpu().numpy().astype(np.float32),
                     int(width), int(height), float(near_plane), float(far_plane), sampler, k)
         features = _colours(per_colors[c], means, viewmats[c], sh_degree)
-        background = per_bg[c]
         if render_mode != "RGB":
             depth = (means @ viewmats[c, 2, :3].detach() + viewmats[c, 2, 3].detach())[:, None]
             features = depth if render_mode in ("D", "ED") else torch.cat([features, depth], 1)
-            if background is not None:
-                background = (background[:0] if render_mode in ("D", "ED") else background)
-                background = torch.cat([background, background.new_zeros(1)])
+        background = per_bg[c]
         sel = view_selection(means, quats, scales, opacities, view)
         image, alpha = RasterFunction.apply(means, quats, scales, opacities, features, background, sel, view)
         image, alpha = image.reshape(height, width, -1), alpha.reshape(height, width, 1)
