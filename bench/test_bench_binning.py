@@ -1,9 +1,11 @@
 """Binning building blocks: pyopencl's scan and RadixSort vs numpy on the host (CPU device).
 
-This measurement is why ``qr_cl.stages.binning.sort_pairs`` sorts with numpy when the device is the CPU:
-on the fox scene at 640x480 (105k keys) pyopencl's RadixSort took ~17 ms and numpy's stable
-argsort, copies included, ~4.6 ms. pyopencl's scan (~0.27 ms, numpy 0.21 ms) is kept: it runs
-on every device.
+This measurement is why ``qr_cl.stages.binning.sort_pairs`` sorts on the host when the device is
+the CPU: on the fox scene at 640x480 (105k keys) pyopencl's RadixSort took ~17 ms and numpy's
+stable argsort, copies included, ~4.6 ms; torch's stable sort (a radix sort of int64 keys, one
+thread) is faster again (3.7M keys of a dense room: 97 ms vs numpy's 374 ms; 380k keys: 3.7 vs
+29 ms), so ``sort_pairs`` uses it (``test_sort_pairs_host``). pyopencl's scan (~0.27 ms, numpy
+0.21 ms) is kept: it runs on every device.
 
     pytest bench/test_bench_binning.py --benchmark-only
 """
@@ -72,3 +74,13 @@ def test_sort_numpy_host(benchmark, keys, bench_full):
         rt.queue.finish()
         return out
     run(benchmark, sort, bench_full)
+
+
+def test_sort_pairs_host(benchmark, keys, bench_full):
+    """qr-cl's CPU path (torch's stable sort into pooled host arrays), equal to numpy's stable order."""
+    from qr_cl.stages.binning import sort_pairs
+    rt, (_, k, v, bits) = runtime(), keys
+    (sk, sv), _ = run(benchmark, lambda: sort_pairs(rt, k, v, bits), bench_full)
+    order = np.argsort(k.get(), kind="stable")
+    np.testing.assert_array_equal(sk.get(), k.get()[order])
+    np.testing.assert_array_equal(sv.get(), v.get()[order])

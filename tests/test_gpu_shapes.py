@@ -78,5 +78,7 @@ def test_pyopencl_scan_and_sort_are_checked_on_the_device(monkeypatch):
     np.testing.assert_array_equal(exclusive_scan(rt, to_device(rt, values, np.int32)).get(),
                                   np.cumsum(values) - values)
     keys = np.random.default_rng(1).integers(0, 1 << 40, 1000).astype(np.uint64)
+    keys[::7] = keys[3]                                      # ties keep their order (stable)
     k, v = binning.sort_pairs(rt, to_device(rt, keys, np.uint64), to_device(rt, np.arange(1000), np.int32), 40)
     np.testing.assert_array_equal(k.get(), np.sort(keys, kind="stable"))
+    np.testing.assert_array_equal(v.get(), np.argsort(keys, kind="stable"))

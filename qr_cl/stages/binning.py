@@ -14,6 +14,7 @@ from functools import lru_cache
 import numpy as np
 import pyopencl as cl
 import pyopencl.array as cla
+import torch
 from pyopencl.algorithm import RadixSort
 
 from ..runtime import Runtime, device_empty, device_zeros, exclusive_scan, host_empty, last_value, to_device
@@ -110,19 +111,24 @@ def device_sort_works(context: cl.Context) -> bool:
 def sort_pairs(rt: Runtime, keys: cla.Array, values: cla.Array, key_bits: int) -> tuple[cla.Array, cla.Array]:
     """Sort (key, value) pairs by the low ``key_bits`` bits of the uint64 keys.
 
-    On a CPU-shaped runtime the host is the device: numpy's stable argsort on the mapped data is
-    much faster than pyopencl's GPU-style RadixSort there (see bench/test_bench_binning.py). On
-    GPU-shaped ones (:attr:`qr_cl.runtime.Runtime.gpu_shaped`) pyopencl's RadixSort runs on the
-    device, once :func:`device_sort_works` has checked it there; both are stable, so the order is
-    the same.
+    On a CPU-shaped runtime the host is the device: the pairs are sorted on the host by torch's
+    stable sort (a radix sort for int64 keys; keys of at most 63 bits keep their order as int64),
+    about 4-8x faster than numpy's stable argsort (a merge sort) and much faster than pyopencl's
+    GPU-style RadixSort there (see bench/test_bench_binning.py); its outputs are pooled host
+    arrays. On GPU-shaped ones (:attr:`qr_cl.runtime.Runtime.gpu_shaped`) pyopencl's RadixSort
+    runs on the device, once :func:`device_sort_works` has checked it there; all are stable, so the
+    order is the same.
     """
     if not rt.gpu_shaped or not device_sort_works(rt.context):
         host_keys = _get(keys)
-        order = np.argsort(host_keys, kind="stable")
-        sorted_keys = to_device(rt, np.take(host_keys, order, out=host_empty(keys.shape, keys.dtype)), np.uint64)
+        if key_bits > 63:
+            raise ValueError(f"sort keys of {key_bits} bits: at most 63 are supported")
+        sorted_keys, order = host_empty(keys.shape, np.uint64), host_empty(keys.shape, np.int64)
+        torch.sort(torch.from_numpy(host_keys.view(np.int64)), stable=True,
+                   out=(torch.from_numpy(sorted_keys.view(np.int64)), torch.from_numpy(order)))
         host_values = _get(values)
-        return sorted_keys, to_device(rt, np.take(host_values, order, out=host_empty(values.shape, values.dtype)),
-                                      np.int32)
+        return to_device(rt, sorted_keys, np.uint64), to_device(
+            rt, np.take(host_values, order, out=host_empty(values.shape, values.dtype)), np.int32)
     (sorted_keys, sorted_values), _ = radix_sorter(rt.context)(keys, values, key_bits=key_bits,
                                                                allocator=rt.pool)
     return sorted_keys, sorted_values
