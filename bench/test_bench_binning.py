@@ -80,7 +80,7 @@ def test_sort_pairs_host(benchmark, keys, bench_full):
     """qr-cl's CPU path (torch's stable sort into pooled host arrays), equal to numpy's stable order."""
     from qr_cl.stages.binning import sort_pairs
     rt, (_, k, v, bits) = runtime(), keys
-    (sk, sv), _ = run(benchmark, lambda: sort_pairs(rt, k, v, bits), bench_full)
+    sk, sv = run(benchmark, lambda: sort_pairs(rt, k, v, bits), bench_full)
     order = np.argsort(k.get(), kind="stable")
     np.testing.assert_array_equal(sk.get(), k.get()[order])
     np.testing.assert_array_equal(sv.get(), v.get()[order])
