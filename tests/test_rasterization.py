@@ -236,3 +236,49 @@ def test_per_camera_colours_and_no_gaussians(random_scene):
     assert (alpha == 0).all() and meta["radii"].shape == (2, 0)
     with pytest.raises(ValueError, match="quats has shape"):
         qr_cl.rasterization(*tensors(m, q[:, :3], s, o, colors[0]), viewmats, Ks, w, h)
+
+
+@pytest.mark.parametrize("sampler,k", SAMPLERS_K)
+def test_alpha_gradients_follow_the_derivation(random_scene, sampler, k):
+    """blend_backward_alpha (kernel) = blend_ref.alpha_grads (the written derivation) = torch's
+    autograd of the weights, per selected entry."""
+    from qr_cl.render import rasterize_plan
+    from qr_cl.runtime import channel_layout, device_rows, runtime
+    from qr_cl.stages import select
+    from qr_cl.stages.blend import blend_backward_alpha
+    m, q, s, o, v, K, w, h = random_scene
+    rng = np.random.default_rng(8)
+    features = rng.standard_normal((len(m), 6)).astype(np.float32)
+    pixels = rng.integers(0, [w, h], (200, 2)).astype(np.int32)
+    sel = select(rasterize_plan(m, q, s, o, v, K, w, h), sampler, k, pixels)
+    dimage = rng.standard_normal((sel.n_rays, 6)).astype(np.float32)
+    d_trem = rng.standard_normal(sel.n_rays).astype(np.float32) if sampler == "volume" else None
+    cstride = channel_layout(6)[2]
+    with device_rows(runtime(), features, cstride) as f, device_rows(runtime(), dimage, cstride) as d:
+        kernel = blend_backward_alpha(sel, f, d, 6, d_trem).get()
+    hst = sel.host()
+    ids, valid = hst["ids"], hst["ids"] >= 0
+    rows = sel.offsets.get()[:sel.n_rays, None] + np.arange(ids.shape[1])[None]
+    kernel = np.where(valid, kernel[np.where(valid, rows, 0)], 0)
+
+    e = project_ref.ewa(m, q, s, v, K, w, h)
+    centre = pixels[:, None] + 0.5
+    dx, dy = (e["means2d"].numpy()[np.maximum(ids, 0)] - centre).transpose(2, 0, 1)
+    A, B, C = e["conics"].numpy()[np.maximum(ids, 0)].transpose(2, 0, 1)
+    sigma = 0.5 * (A * dx ** 2 + C * dy ** 2) + B * dx * dy
+    alphas = np.where(valid, np.minimum(0.99, o[np.maximum(ids, 0)] * np.exp(-sigma)), 0)
+    g = np.where(valid, np.einsum("pc,plc->pl", dimage.astype(np.float64), features[np.maximum(ids, 0)]), 0)
+    derived = np.where(valid, blend_ref.alpha_grads(alphas, g, sampler != "volume", d_trem), 0)
+
+    a = torch.tensor(alphas, requires_grad=True)
+    T = torch.cumprod(torch.cat([torch.ones(len(a), 1, dtype=a.dtype), 1 - a], 1), 1)
+    u = T[:, :-1] * a
+    weights = u / u.sum(1, keepdim=True).clamp_min(1e-300) if sampler != "volume" else u
+    loss = (weights * torch.tensor(g)).sum()
+    if d_trem is not None:
+        loss = loss + (T[:, -1] * torch.tensor(d_trem, dtype=a.dtype)).sum()
+    loss.backward()
+    auto = np.where(valid, a.grad.numpy(), 0)
+    scale = np.abs(auto).max()
+    np.testing.assert_allclose(derived, auto, atol=1e-9 * scale)
+    np.testing.assert_allclose(kernel, auto, atol=2e-4 * scale)

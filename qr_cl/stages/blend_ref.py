@@ -50,3 +50,30 @@ def render_rays(means2d: torch.Tensor, conics: torch.Tensor, opacities: torch.Te
     if background is not None:
         image = image + t_rem[:, None] * background
     return image, t_final
+
+
+def alpha_grads(alphas: np.ndarray, g: np.ndarray, normalized: bool, d_trem: np.ndarray | None = None) -> np.ndarray:
+    """dL/dalpha [P,L] of the selected entries, the derivation blend.cl's ``blend_backward_alpha``
+    implements, in float64. alphas [P,L] in depth order (0 for padding; padding's results are
+    meaningless), g [P,L] = dImage[p] . F[id] (dL/dw of each entry), d_trem [P] = dL/dT_final
+    (volume only).
+
+    With T_j = prod_{i<j} (1 - a_i) and u_j = T_j a_j, du_i/da_j = T_j for i = j,
+    -u_i / (1 - a_j) for i > j, and 0 for i < j; dT_final/da_j = -T_final / (1 - a_j). So
+      volume (w = u):  dL/da_j = T_j g_j - (sum_{i>j} g_i u_i + d_trem T_final) / (1 - a_j);
+      K samplers (w = u / U, U = sum_i u_i, the selection held fixed): dL/du_j = h_j =
+      (g_j - sum_i g_i w_i) / U, and dL/da_j = T_j h_j - (sum_{i>j} h_i u_i) / (1 - a_j).
+    """
+    a = np.asarray(alphas, np.float64)
+    T = np.cumprod(np.concatenate([np.ones((len(a), 1)), 1 - a], 1), 1)
+    u = T[:, :-1] * a
+    if normalized:
+        U = u.sum(1, keepdims=True)
+        w = np.divide(u, U, out=np.zeros_like(u), where=U > 0)
+        h = np.divide(g - (g * w).sum(1, keepdims=True), U, out=np.zeros_like(u), where=U > 0)
+        tail = np.zeros(len(a))
+    else:
+        h = np.asarray(g, np.float64)
+        tail = np.zeros(len(a)) if d_trem is None else np.asarray(d_trem, np.float64) * T[:, -1]
+    after = np.cumsum((h * u)[:, ::-1], 1)[:, ::-1] - h * u + tail[:, None]    # sum_{i>j} h_i u_i + tail
+    return T[:, :-1] * h - after / (1 - a)
