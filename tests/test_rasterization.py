@@ -150,6 +150,8 @@ def test_bad_shapes_and_modes_raise(random_scene):
         qr_cl.rasterization(*args, torch.tensor(v), torch.tensor(K), w, h)
     with pytest.raises(ValueError, match="render_mode"):
         qr_cl.rasterization(*args, torch.tensor(v)[None], torch.tensor(K)[None], w, h, render_mode="N")
+    with pytest.raises(ValueError, match="viewmats and Ks"):
+        qr_cl.rasterization(*args, torch.tensor(v, requires_grad=True)[None], torch.tensor(K)[None], w, h)
     with pytest.raises(ValueError, match="sh_degree"):
         qr_cl.rasterization(*args, torch.tensor(v)[None], torch.tensor(K)[None], w, h, sh_degree=1)
 

@@ -143,7 +143,8 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
     backgrounds, through the EWA projection, the 2D conic and alpha, for every sampler; the
     backward is deterministic (bitwise identical run to run). For the K samplers the selection is
     piecewise constant in the geometry and render_alphas carries no gradient. The meta entries
-    are plain tensors without gradients.
+    are plain tensors without gradients. Cameras get no gradient: viewmats or Ks that require
+    one raise a ValueError.
     """
     _check_options(dict(radius_clip=radius_clip, eps2d=eps2d, packed=packed, tile_size=tile_size,
                         sparse_grad=sparse_grad, absgrad=absgrad, rasterize_mode=rasterize_mode,
@@ -156,6 +157,9 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
     if viewmats.ndim != 3 or viewmats.shape[1:] != (4, 4) or tuple(Ks.shape) != (n_cameras, 3, 3):
         raise ValueError(f"viewmats must be [C,4,4] and Ks [C,3,3], got {tuple(viewmats.shape)} and {tuple(Ks.shape)}")
     _check_gaussians(means, quats, scales, opacities)
+    if torch.is_grad_enabled() and (viewmats.requires_grad or Ks.requires_grad):
+        raise ValueError("gradients w.r.t. viewmats and Ks (camera optimisation) are not implemented; "
+                         "pass them detached")
     quats = quats / quats.norm(dim=-1, keepdim=True)
     per_colors = _per_camera(colors, n_cameras, 2 if sh_degree is None else 3,
                              "colors" if sh_degree is None else f"colors (SH coefficients, sh_degree={sh_degree})")
