@@ -20,7 +20,8 @@ from .images import save_alpha, save_depth, save_rgb
 DELEGATED = {"demo": ("demo", "the embedded default job (see README)"),
              "bench": ("benchmark", "kernel benchmark sweeps: JSON, markdown summary and plots"),
              "train": ("train", "train GS-Net through a feature renderer on scene folders"),
-             "eval": ("evaluate", "open-vocabulary 3D segmentation: mIoU/mAcc tables, images, PLYs")}
+             "eval": ("evaluate", "open-vocabulary 3D segmentation: mIoU/mAcc tables, images, PLYs"),
+             "reproduce": ("reproduce", "the paper's controlled experiments on 3DGS-like rooms: report and plots")}
 
 
 def _cmd_devices(args: argparse.Namespace) -> int:

@@ -2,9 +2,20 @@
 
 A room (floor, four walls) holds furniture-like objects of ScanNet classes built from open3d
 primitives (boxes, cylinders, spheres) and wall-mounted doors, windows, pictures and curtains.
-Flat Gaussians sit on the surfaces (thin axis along the normal, class colour plus noise, high
-opacity); a few low-opacity floaters fly in the air. Cameras stand inside the room looking at
-objects; per-view instance masks are rendered with our own renderer.
+Cameras stand inside the room looking at objects; per-view instance masks are rendered with our
+own renderer from the Gaussians' object ids. Two styles of Gaussians (``SyntheticConfig.style``):
+
+- ``"flat"`` (the demo's default): flat Gaussians on the surfaces (thin axis along the normal,
+  class colour plus noise, high opacity) and a few low-opacity floaters in the air. A ray meets
+  an opaque surface and stops there, so every sampler picks nearly the same Gaussians.
+- ``"3dgs"``: rooms that look like optimized 3DGS captures (:func:`splat_gaussians`): every
+  surface is a semi-transparent shell ``thickness`` deep holding ``layers`` Gaussians per
+  footprint, with log-normal anisotropic scales, random in-plane spins and tilts, Beta-distributed
+  opacities (many faint, many nearly opaque, as real captures have) and ``floater_fraction`` of
+  large faint floaters. Rays cross tens of Gaussians before V-Render saturates (the comparison
+  with real scenes is in ``qr-cl reproduce``'s report). Ground truth: the generator's
+  per-Gaussian labels (no labelled point cloud: Gaussians inside a shell are far from any
+  surface point in their own Mahalanobis metric, so App. B would drop most of them).
 
 "CLIP" features are SIMULATED: each class has a fixed random unit prototype (``dim``-D, seeded);
 a mask's feature is normalize(prototype + ``mask_noise`` * random unit vector) and a class's text
@@ -13,8 +24,8 @@ gap). Real CLIP features plug in through the same LangSplat files.
 
 Folder written (see :mod:`qr_cl.data`): point_cloud.ply, cameras.json,
 language_features/<frame>_s.npy [4,H,W] + <frame>_f.npy [M,dim], classes.json,
-labels/gaussian_labels.npy [N] (class id, -1 for floaters), labels/points.ply (labelled point
-cloud with a ``label`` vertex property, for the App. B pseudo ground truth).
+labels/gaussian_labels.npy [N] (class id, -1 for floaters), labels/points.ply (flat style only:
+labelled point cloud with a ``label`` vertex property, for the App. B pseudo ground truth).
 """
 from __future__ import annotations
 
@@ -26,17 +37,21 @@ import shutil
 import tempfile
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
 from ..render import rasterize
 from ..runtime import SH_C0
-from ..scene import Camera, Gaussians, look_at, save_ply
+from ..scene import Camera, Gaussians, look_at, quat_multiply, save_ply
 from .metrics import NYU40_NAMES
 from .procedural import concat, surface_gaussians
 
 GENERATOR_VERSION = 4
 LEVELS = 4            # LangSplat's mask levels (default, s, m, l)
+STYLES = ("flat", "3dgs")
+#: SyntheticConfig fields read by the "3dgs" style only (left out of a flat room's cache key).
+SPLAT_FIELDS = ("layers", "thickness", "opacity_beta", "floater_opacity_beta", "anisotropy")
 
 #: class id -> base RGB colour in [0,1].
 CLASS_COLOURS: dict[int, tuple[float, float, float]] = {
@@ -70,11 +85,36 @@ class SyntheticConfig:
     points_per_gaussian: int = 16
     room_size: tuple[float, float, float] = (5.0, 4.0, 2.6)
     prototype_seed: int = 12345
+    style: str = "flat"
+    layers: float = 3.0                            # 3dgs: Gaussians stacked per footprint of a shell
+    thickness: float = 0.03                        # 3dgs: shell depth behind each surface, m
+    opacity_beta: tuple[float, float] = (0.6, 0.5)           # 3dgs: Beta(a, b) of surface opacities
+    floater_opacity_beta: tuple[float, float] = (0.5, 6.0)   # 3dgs: Beta(a, b) of floater opacities
+    anisotropy: float = 0.6                        # 3dgs: std of the log of each axis' scale factor
+
+    def __post_init__(self) -> None:
+        if self.style not in STYLES:
+            raise ValueError(f"style={self.style!r}: choose one of {STYLES}")
+
+    def params(self) -> dict:
+        """The parameters the style reads (a flat room's leave out the "3dgs" style's fields, so
+        its cache key and synthetic.json are those of the generator before the style existed)."""
+        params = asdict(self)
+        if self.style == "flat":
+            for name in ("style",) + SPLAT_FIELDS:
+                params.pop(name)
+        return params
 
     def key(self) -> str:
-        """A short hash of the parameters and the generator version (the cache folder name)."""
-        text = json.dumps({"v": GENERATOR_VERSION, **asdict(self)}, sort_keys=True)
+        """A short hash of :meth:`params` and the generator version (the cache folder name)."""
+        text = json.dumps({"v": GENERATOR_VERSION, **self.params()}, sort_keys=True)
         return hashlib.sha1(text.encode()).hexdigest()[:12]
+
+    @property
+    def folder_name(self) -> str:
+        """The scene's folder name in the cache."""
+        prefix = "room" if self.style == "flat" else "splat-room"
+        return f"{prefix}-{self.seed}-{self.key()}"
 
 
 def _open3d():
@@ -276,14 +316,11 @@ def _camera_entry(i: int, cam: Camera) -> dict:
             "position": cam.position.tolist(), "rotation": r.T.tolist(), "fx": cam.fx, "fy": cam.fy}
 
 
-def write_scene(out: Path, cfg: SyntheticConfig) -> None:
-    """Generate the room of ``cfg`` into the (existing, empty) folder ``out``."""
-    rng = np.random.default_rng(cfg.seed)
-    instances = _layout(cfg, rng)
-    areas = np.array([_surface_area(m) for _, m in instances])
-    n_surface = int(round(cfg.n_gaussians * (1 - cfg.floater_fraction)))
-    counts = np.maximum(np.round(n_surface * areas / areas.sum()).astype(int), 16)
-    size = math.sqrt(areas.sum() / counts.sum())
+def _flat_gaussians(cfg: SyntheticConfig, instances: list, counts: np.ndarray, size: float,
+                    rng: np.random.Generator) -> tuple[list[Gaussians], list[np.ndarray], np.ndarray, np.ndarray]:
+    """The "flat" style: per instance ``counts[i]`` flat opaque Gaussians of in-plane sigma about
+    ``size`` (m) on its surfaces, then the floaters up to ``cfg.n_gaussians``. Returns the parts,
+    their instance ids (-1 = floater), and the labelled point cloud [P,3] with labels [P]."""
     parts, inst_ids, points, point_labels = [], [], [], []
     for i, ((cls, meshes), n) in enumerate(zip(instances, counts)):
         pts, nrm = _area_sample(meshes, int(n), rng)
@@ -302,6 +339,74 @@ def write_scene(out: Path, cfg: SyntheticConfig) -> None:
     parts.append(Gaussians(means.astype(np.float32), quats.astype(np.float32), np.full((n_float, 3), size, np.float32),
                            opacities.astype(np.float32), sh.astype(np.float32)))
     inst_ids.append(np.full(n_float, -1))
+    return parts, inst_ids, np.concatenate(points), np.concatenate(point_labels)
+
+
+def _axis_quats(axis: int, angles: np.ndarray) -> np.ndarray:
+    """Unit w,x,y,z quaternions [n,4] of rotations by ``angles`` [n] (radians) about local ``axis``."""
+    q = np.zeros((len(angles), 4))
+    q[:, 0] = np.cos(angles / 2)
+    q[:, 1 + axis] = np.sin(angles / 2)
+    return q
+
+
+def shell_gaussians(points: np.ndarray, normals: np.ndarray, rgb: np.ndarray, size: float, cfg: SyntheticConfig,
+                    rng: np.random.Generator) -> Gaussians:
+    """Gaussians of a semi-transparent surface shell, as 3DGS optimizes them: centres at
+    ``points`` [n,3] moved up to ``cfg.thickness`` (m) inward along the unit ``normals`` [n,3];
+    local frame with z along the normal, spun uniformly about it and tilted by a normal angle of
+    0.3 rad; scales ``size`` (m) x (1, 0.6, 0.25) x log-normal factors of std ``cfg.anisotropy``;
+    opacities Beta(``cfg.opacity_beta``); colour ``rgb`` [3] plus noise (SH degree 0)."""
+    n = len(points)
+    depth = rng.uniform(0.0, cfg.thickness, n)
+    base = surface_gaussians(points - depth[:, None] * normals, normals, rgb, size, rng, colour_noise=0.06,
+                             sh_degree=0)
+    turn = quat_multiply(_axis_quats(2, rng.uniform(0, 2 * np.pi, n)), _axis_quats(0, rng.normal(0, 0.3, n)))
+    quats = quat_multiply(base.quats.astype(np.float64), turn)
+    scales = size * np.array([1.0, 0.6, 0.25]) * np.exp(rng.normal(0.0, cfg.anisotropy, (n, 3)))
+    opacities = rng.beta(*cfg.opacity_beta, n)
+    return Gaussians(base.means, _unit(quats).astype(np.float32), scales.astype(np.float32),
+                     opacities.astype(np.float32), base.sh)
+
+
+def splat_gaussians(cfg: SyntheticConfig, instances: list, counts: np.ndarray, size: float,
+                    rng: np.random.Generator) -> tuple[list[Gaussians], list[np.ndarray]]:
+    """The "3dgs" style: per instance ``counts[i]`` Gaussians in shells behind its surfaces
+    (:func:`shell_gaussians` with sigma ``size``, m: the spacing of one of ``cfg.layers`` layers), then
+    floaters up to ``cfg.n_gaussians``: anywhere in the room, random orientation, 0.1-0.5x the shell
+    sigma, Beta(``cfg.floater_opacity_beta``) opacities, random colours. Returns the parts and
+    their instance ids (-1 = floater)."""
+    parts, inst_ids = [], []
+    for i, ((cls, meshes), n) in enumerate(zip(instances, counts)):
+        pts, nrm = _area_sample(meshes, int(n), rng)
+        parts.append(shell_gaussians(pts, nrm, np.asarray(CLASS_COLOURS[cls]), size, cfg, rng))
+        inst_ids.append(np.full(int(n), i))
+    w, d, h = cfg.room_size
+    m = max(cfg.n_gaussians - int(counts.sum()), 0)
+    means = rng.uniform((0.1, 0.1, 0.1), (w - 0.1, d - 0.1, h - 0.1), (m, 3))
+    scales = size * rng.uniform(0.1, 0.5, (m, 1)) * np.exp(rng.normal(0.0, cfg.anisotropy, (m, 3)))
+    sh = ((rng.random((m, 3)) - 0.5) / SH_C0)[:, None, :]
+    parts.append(Gaussians(means.astype(np.float32), _unit(rng.standard_normal((m, 4))).astype(np.float32),
+                           scales.astype(np.float32), rng.beta(*cfg.floater_opacity_beta, m).astype(np.float32),
+                           sh.astype(np.float32)))
+    inst_ids.append(np.full(m, -1))
+    return parts, inst_ids
+
+
+def write_scene(out: Path, cfg: SyntheticConfig) -> None:
+    """Generate the room of ``cfg`` into the (existing, empty) folder ``out``."""
+    rng = np.random.default_rng(cfg.seed)
+    instances = _layout(cfg, rng)
+    areas = np.array([_surface_area(m) for _, m in instances])
+    n_surface = int(round(cfg.n_gaussians * (1 - cfg.floater_fraction)))
+    counts = np.maximum(np.round(n_surface * areas / areas.sum()).astype(int), 16)
+    spacing = math.sqrt(areas.sum() / counts.sum())          # of the surface Gaussians, m
+    points = None
+    if cfg.style == "flat":
+        parts, inst_ids, points, point_labels = _flat_gaussians(cfg, instances, counts, spacing, rng)
+    else:
+        parts, inst_ids = splat_gaussians(cfg, instances, counts, spacing * math.sqrt(cfg.layers), rng)
+    w, d, h = cfg.room_size
     gaussians = concat(parts)
     instance = np.concatenate(inst_ids).astype(np.int64)
     classes = np.array([c for c, _ in instances])
@@ -338,8 +443,9 @@ def write_scene(out: Path, cfg: SyntheticConfig) -> None:
     (out / "classes.json").write_text(json.dumps({"feature_dim": cfg.dim, "classes": table}))
     (out / "labels").mkdir()
     np.save(out / "labels" / "gaussian_labels.npy", labels)
-    write_labelled_points(out / "labels" / "points.ply", np.concatenate(points), np.concatenate(point_labels))
-    (out / "synthetic.json").write_text(json.dumps({"generator_version": GENERATOR_VERSION, **asdict(cfg)}, indent=1))
+    if points is not None:
+        write_labelled_points(out / "labels" / "points.ply", points, point_labels)
+    (out / "synthetic.json").write_text(json.dumps({"generator_version": GENERATOR_VERSION, **cfg.params()}, indent=1))
 
 
 def default_cache() -> Path:
@@ -347,23 +453,29 @@ def default_cache() -> Path:
     return Path(os.environ.get("QR_CL_CACHE", Path.home() / ".cache" / "qr-cl")) / "scenes"
 
 
-def synthetic_scene(cfg: SyntheticConfig, cache: Path | None = None) -> Path:
-    """The folder of the scene ``cfg`` under ``cache`` (default :func:`default_cache`), generated
-    on first use (into a temporary folder renamed when complete, so a crash leaves no half scene)."""
-    cache = Path(cache) if cache is not None else default_cache()
-    target = cache / f"room-{cfg.seed}-{cfg.key()}"
-    if (target / "synthetic.json").is_file():
+def build_folder(target: Path, marker: str, write: Callable[[Path], None]) -> Path:
+    """The folder ``target``, made on first use (when ``target / marker`` does not exist) by
+    ``write(folder)`` into a temporary folder beside it that is renamed when complete, so a crash
+    leaves no half folder and concurrent makers leave one complete folder."""
+    if (target / marker).is_file():
         return target
-    cache.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}-", dir=cache))
+    target.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}-", dir=target.parent))
     try:
-        write_scene(tmp, cfg)
+        write(tmp)
         try:
             os.replace(tmp, target)
         except OSError:
-            if not (target / "synthetic.json").is_file():
+            if not (target / marker).is_file():
                 raise
     finally:
         if tmp.exists():
             shutil.rmtree(tmp)
     return target
+
+
+def synthetic_scene(cfg: SyntheticConfig, cache: Path | None = None) -> Path:
+    """The folder of the scene ``cfg`` under ``cache`` (default :func:`default_cache`), generated
+    on first use (:func:`build_folder`)."""
+    cache = Path(cache) if cache is not None else default_cache()
+    return build_folder(cache / cfg.folder_name, "synthetic.json", lambda tmp: write_scene(tmp, cfg))

@@ -159,6 +159,15 @@ def rasterize(means, quats, scales, opacities, features, viewmat, K, width: int,
         of channels (the same image); features whose 16 channels alone do not fit, or a render
         that still does not fit, raise :class:`qr_cl.runtime.BufferLimitError` naming the sizes.
 
+        Compositing RGB from "quantile" (and "topk"/"stratified"): the selected weights are
+        normalized to sum to 1, so the image is the colour *given* a hit; faint edges and
+        floaters come out opaque (halos), and the raw image gets worse with K (fox, 4 views at
+        640x480: 22.1 / 21.5 / 21.0 dB PSNR from V-Render at K = 10 / 20 / 40). Multiply it by
+        V-Render's alpha (``sampler="volume"`` or :func:`render_volume_fused`: 1 - final T)
+        before compositing: 41.7 / 47.4 / 53.3 dB. The alpha a K sampler returns itself (1 - T
+        where its walk stopped) needs no second walk and costs about 3 dB (38.6 / 44.5 /
+        50.7 dB). ``qr-cl reproduce`` measures and pictures this.
+
         The render is differentiable w.r.t. ``features`` (a [N,C] tensor with requires_grad) and
         ``background`` through :class:`qr_cl.render.autograd.BlendFunction`. No gradient is
         produced for means, quats, scales, opacities, viewmat or K (the Gaussians are frozen in

@@ -1,0 +1,236 @@
+"""``qr-cl reproduce``: the "3dgs" room generator, the opacity noise, the profile and PSNR measures,
+the paper's claims, the report writer and the command's wiring (a smoke run on tiny rooms)."""
+from __future__ import annotations
+
+import filecmp
+import json
+import math
+
+import numpy as np
+import pytest
+
+from qr_cl.app.cli import DELEGATED, build_parser, main
+from qr_cl.app.data import load_scene_folder
+from qr_cl.app.reproduce import (PLANS, Renderer, entries_per_ray, noisy_scene, paper_claims, perturb_opacities,
+                                 profile_gaps,
+                                 psnr, renderers, report_markdown, weight_concentration, write_report)
+from qr_cl.app.synthetic import SyntheticConfig, synthetic_scene
+from synthetic_helpers import tiny_config
+
+SPLAT_ROOM = dict(style="3dgs", n_gaussians=5000, layers=2.0, n_objects=3, n_wall_objects=1, n_views=3, width=80,
+                  height=60, dim=32)
+
+
+@pytest.fixture(scope="module")
+def splat_room(tmp_path_factory):
+    return synthetic_scene(SyntheticConfig(seed=5, **SPLAT_ROOM), tmp_path_factory.mktemp("splat"))
+
+
+def _mean_entries(path) -> float:
+    scene = load_scene_folder(path)
+    counts = np.concatenate([entries_per_ray(scene.gaussians, f.camera) for f in scene.frames])
+    return float(counts[counts > 0].mean())
+
+
+def test_splat_rays_cross_many_gaussians_unlike_flat_rooms(splat_room, tmp_path):
+    flat_room = {k: v for k, v in SPLAT_ROOM.items() if k not in ("style", "layers")}
+    flat = synthetic_scene(SyntheticConfig(seed=5, **flat_room), tmp_path)
+    splat, opaque = _mean_entries(splat_room), _mean_entries(flat)
+    assert splat >= 50
+    assert splat > 1.5 * opaque
+
+
+def test_splat_gaussians_are_semi_transparent_anisotropic_with_floaters(splat_room):
+    scene = load_scene_folder(splat_room)
+    g, labels = scene.gaussians, scene.gaussian_labels
+    surface = g.opacities[labels >= 0]
+    assert 0.3 < np.mean((surface > 0.1) & (surface < 0.9)) < 0.9      # many semi-transparent ...
+    assert np.mean(surface < 0.1) > 0.05 and np.mean(surface > 0.9) > 0.05   # ... and faint and opaque ones
+    s = np.sort(g.scales, axis=1)
+    assert np.median(s[:, 2] / s[:, 0]) > 2.5
+    floaters = labels == -1
+    assert 0.005 < floaters.mean() < 0.05
+    assert g.opacities[floaters].mean() < 0.3 * surface.mean()
+    assert not (splat_room / "labels" / "points.ply").exists()          # ground truth: per-Gaussian labels
+
+
+def test_splat_masks_come_from_object_ids(splat_room):
+    scene = load_scene_folder(splat_room)
+    present = set(np.unique(scene.gaussian_labels[scene.gaussian_labels >= 0]).tolist())
+    hits = total = 0
+    for frame in scene.frames:
+        assert (frame.masks >= 0).mean() > 0.5
+        best = scene.classes.ids[(frame.features @ scene.classes.text_features.T).argmax(1)]
+        hits += sum(int(b) in present for b in best)
+        total += len(best)
+    assert total >= 2 * len(scene.frames) and hits >= 0.8 * total
+
+
+def test_splat_room_is_seeded_and_cached(splat_room, tmp_path):
+    again = synthetic_scene(SyntheticConfig(seed=5, **SPLAT_ROOM), tmp_path)
+    assert again.name.startswith("splat-room-5-")
+    for rel in ("point_cloud.ply", "cameras.json", "labels/gaussian_labels.npy", "language_features/frame_001_s.npy"):
+        assert filecmp.cmp(splat_room / rel, again / rel, shallow=False), rel
+    mtime = (again / "point_cloud.ply").stat().st_mtime_ns
+    assert synthetic_scene(SyntheticConfig(seed=5, **SPLAT_ROOM), tmp_path) == again
+    assert (again / "point_cloud.ply").stat().st_mtime_ns == mtime
+    other = synthetic_scene(SyntheticConfig(seed=6, **SPLAT_ROOM), tmp_path)
+    assert not filecmp.cmp(splat_room / "point_cloud.ply", other / "point_cloud.ply", shallow=False)
+
+
+def test_flat_rooms_keep_their_cache_keys():
+    # the demo's cached rooms: the "3dgs" style's fields must not enter a flat room's key
+    assert SyntheticConfig(seed=0, n_gaussians=24000).key() == "045fdfc35f46"
+    assert SyntheticConfig(seed=0, n_gaussians=24000, layers=7.0).key() == "045fdfc35f46"
+    assert SyntheticConfig(seed=0, style="3dgs").key() != SyntheticConfig(seed=0, style="3dgs", layers=7.0).key()
+    with pytest.raises(ValueError, match="style"):
+        SyntheticConfig(style="mesh")
+    assert tiny_config().folder_name.startswith("room-0-")
+
+
+def test_opacity_noise_acts_on_logits(tiny_room):
+    g = load_scene_folder(tiny_room).gaussians
+    same = perturb_opacities(g, 0.0, np.random.default_rng(0))
+    assert np.allclose(same.opacities, g.opacities, atol=1e-6)
+    noisy = perturb_opacities(g, 2.0, np.random.default_rng(0))
+    p, q = (np.clip(x.astype(np.float64), 1e-6, 1 - 1e-6) for x in (g.opacities, noisy.opacities))
+    delta = np.log(q / (1 - q)) - np.log(p / (1 - p))
+    assert abs(delta.std() - 2.0) < 0.15 and abs(delta.mean()) < 0.1
+    assert np.array_equal(noisy.means, g.means) and noisy.opacities.dtype == np.float32
+    again = perturb_opacities(g, 2.0, np.random.default_rng(0))
+    assert np.array_equal(again.opacities, noisy.opacities)
+
+
+def test_noisy_scene_is_a_cached_copy_with_noisy_opacities(tiny_room):
+    noisy = noisy_scene(tiny_room, 1.0, 0)
+    assert noisy != tiny_room and (noisy / "cameras.json").is_symlink()
+    assert not (noisy / "point_cloud.ply").is_symlink()
+    clean, perturbed = load_scene_folder(tiny_room), load_scene_folder(noisy)
+    assert np.array_equal(clean.gaussians.means, perturbed.gaussians.means)
+    assert not np.allclose(clean.gaussians.opacities, perturbed.gaussians.opacities, atol=0.01)
+    assert len(perturbed.frames) == len(clean.frames)
+    mtime = (noisy / "point_cloud.ply").stat().st_mtime_ns
+    assert noisy_scene(tiny_room, 1.0, 0) == noisy and (noisy / "point_cloud.ply").stat().st_mtime_ns == mtime
+    assert noisy_scene(tiny_room, 1.0, 1) != noisy
+
+
+def test_profile_gaps():
+    depths, t = np.array([1.0, 2.0, 3.0]), np.array([1.0, 0.5, 0.25, 0.125])
+    assert profile_gaps((depths, t), (depths, t)) == (0.0, 0.0)
+    # one Gaussian at depth 2 taking T from 1 to 0.5: at depths 1, 2, 3 its T is 1, 0.5, 0.5 against
+    # V-Render's 0.5, 0.25, 0.125; its normalized weight is all at depth 2, V-Render's CDF is
+    # (4/7, 6/7, 1) there
+    t_gap, cdf_gap = profile_gaps((depths, t), (np.array([2.0]), np.array([1.0, 0.5])))
+    assert t_gap == pytest.approx((0.5 + 0.25 + 0.375) / 3)
+    assert cdf_gap == pytest.approx((4 / 7 + 1 / 7 + 0) / 3)
+    assert profile_gaps((np.zeros(0), np.ones(1)), (depths, t)) == (0.0, 0.0)
+
+
+def test_weight_concentration():
+    w = np.array([[0.5, 0.3, 0.1, 0.05, 0.05], [0.2, 0.2, 0.2, 0.2, 0.2], [0.0, 0.0, 0.0, 0.0, 0.0],
+                  [0.05, 0.9, 0.0, 0.0, 0.0]])
+    assert weight_concentration(w).tolist() == [3, 5, 0, 1]
+    assert weight_concentration(w, 0.5).tolist() == [1, 3, 0, 1]
+
+
+def test_psnr():
+    a = np.zeros((4, 4, 3))
+    assert psnr(a, a) == math.inf
+    assert psnr(a + 0.1, a) == pytest.approx(20.0)
+    assert psnr(a + 2.0, a) == pytest.approx(0.0)        # clipped to [0, 1]
+
+
+def test_renderers_of_the_plans():
+    full = renderers(PLANS["full"])
+    labels = [r.label for r in full]
+    assert len(set(labels)) == len(labels)
+    assert Renderer("volume") in full
+    for k in (5, 10, 20, 40, 50):
+        assert Renderer("topk", k) in full and Renderer("quantile", k) in full
+    assert Renderer("stratified", 40) in full and Renderer("quantile", 40, seed=1) in full
+    assert {r.noise for r in full} == {0.0, 0.25, 0.5, 1.0, 2.0, 4.0}
+    assert all(r.sampler == "quantile" and r.k == 40 for r in full if r.noise)
+    assert len(renderers(PLANS["quick"])) < len(full)
+
+
+def _results(q5: float = 30.0, t5: float = 25.0, noise_half: float = 39.5, strat_ms: float = 20.0) -> dict:
+    def run(sampler, k, miou, noise=0.0, seed=0):
+        return {"sampler": sampler, "k": k, "noise": noise, "seed": seed, "label": Renderer(sampler, k, noise, seed).label,
+                "steps": 10,
+                "train_s": 1.0, "final_loss": 0.5, "miou19": miou, "macc19": miou + 5, "miou15": miou + 1,
+                "macc15": 0.0, "miou10": miou + 2, "macc10": 0.0}
+    runs = [run("volume", 0, 40.0), run("topk", 5, t5), run("quantile", 5, q5), run("quantile", 40, 40.5),
+            run("stratified", 40, 40.2), run("quantile", 40, noise_half, 0.5), run("quantile", 40, 12.0, 4.0),
+            run("quantile", 40, 41.7, seed=1)]
+    times = [{"sampler": s, "k": k, "ms": ms, "median_ms": ms} for s, k, ms in
+             (("volume", 0, 30.0), ("topk", 5, 8.0), ("quantile", 5, 6.0), ("quantile", 40, 10.0),
+              ("stratified", 40, strat_ms), ("volume_fused", 0, 25.0))]
+    stats = [{"scene": name, "kind": "k", "n_gaussians": 10, "views": 1, "size": "8x6", "opacity_hist": [0.05] * 20,
+              "opacity_mean": 0.5, "entries_mean": e, "entries_median": e, "entries_p90": e, "holding_90": 3.0,
+              "coverage": 1.0}
+             for name, e in (("room", 80.0), ("fox", 21.0))]
+    return {"mode": "test", "plan": {"room": {}, "steps": 10, "views": 1, "rays": 8, "timing_size": [8, 6],
+                                     "timing_rounds": 1, "timing_views": 1},
+            "seed": 0, "device": "cpu", "wall_s": 60.0, "scenes": {"train": ["a"], "held_out": "b"},
+            "statistics": stats, "runs": runs, "render_ms": times,
+            "profiles": {"k": 10, "rays": 4, "entries_mean": 80.0, "gap": {"Q-Render K=10": [0.1, 0.05]},
+                         "files": ["transmittance_ray000.png"]},
+            "rgb": [{"scene": "fox", "k": 20, "views": 1, "size": "8x6", "psnr_raw": 21.5, "psnr_alpha": 47.4,
+                     "psnr_own_alpha": 45.0}],
+            "agreement": [{"sampler": "topk", "k": 5, "cosine": 0.9876}]}
+
+
+def test_claims_follow_the_numbers():
+    assert [c["holds"] for c in paper_claims(_results())] == [True, True, True, True, True]
+    claims = paper_claims(_results(q5=30.0, t5=28.0, noise_half=38.0, strat_ms=10.5))
+    assert [c["holds"] for c in claims] == [True, False, False, False, True]
+    bad = _results()
+    bad["rgb"][0]["psnr_alpha"] = 25.0
+    bad["runs"][3]["miou19"] = 38.0                       # Q-Render K=40 two points under V-Render
+    claims = paper_claims(bad)
+    assert claims[0]["holds"] is False and claims[4]["holds"] is False
+    missing = _results()
+    missing["runs"] = [r for r in missing["runs"] if r["sampler"] != "topk"]
+    missing["rgb"] = []
+    claims = paper_claims(missing)
+    assert claims[1]["holds"] is None and claims[4]["holds"] is None
+
+
+def test_report_writer(tmp_path):
+    results = _results()
+    results["claims"] = paper_claims(results)
+    files = write_report(tmp_path, results)
+    assert all(f.is_file() and f.stat().st_size > 0 for f in files)
+    text = (tmp_path / "report.md").read_text()
+    assert text == report_markdown(json.loads((tmp_path / "results.json").read_text()))
+    assert "| top-K K=5 | 25.0 | 30.0 | 26.0 | 27.0 | 37.84 | 8.0 | 0.9876 |" in text
+    assert "| Q-Render K=5 | 30.0 | 35.0 | 31.0 | 32.0 | 49.98 | 6.0 | - |" in text
+    assert "| 0.5 | 39.5 | 44.5 | 50.18 |" in text
+    assert "| fox | 1 | 8x6 | 20 | 21.5 | 47.4 | 45.0 |" in text
+    assert "| Q-Render K=10 | 0.100 | 0.050 |" in text
+    assert text.count("| reproduced |") == 5
+    assert "scored mIoU19 41.7 against 40.5 (+1.2 points)" in text
+    assert "| Q-Render K=40, seed +1 | 41.7 |" in text
+
+
+def test_cli_registers_reproduce():
+    assert DELEGATED["reproduce"][0] == "reproduce"
+    args = build_parser().parse_args(["reproduce", "--quick", "--out", "x"])
+    assert args.quick and not args.smoke and args.out == "x"
+
+
+def test_smoke_run_writes_the_report(tmp_path, data_dir, capsys):
+    out = tmp_path / "out"
+    assert main(["reproduce", "--smoke", "--out", str(out), "--cache", str(tmp_path / "cache"),
+                 "--data", str(data_dir)]) == 0
+    results = json.loads((out / "results.json").read_text())
+    assert {r["label"] for r in results["runs"]} == {r.label for r in renderers(PLANS["smoke"])}
+    assert {t["sampler"] for t in results["render_ms"]} == {"volume", "topk", "quantile", "stratified", "volume_fused"}
+    real = (data_dir / "wakufactory-fox" / "fox.ply").is_file()
+    assert ("fox" in {s["scene"] for s in results["statistics"]}) == real
+    assert ("fox" in {r["scene"] for r in results["rgb"]}) == real
+    assert all(r["psnr_alpha"] > r["psnr_raw"] - 1e-6 or r["scene"] != "fox" for r in results["rgb"])
+    assert {"psnr_raw", "psnr_alpha", "psnr_own_alpha", "psnr_topk_alpha"} <= set(results["rgb"][0])
+    for name in ["report.md", "miou_vs_time.png", "scene_statistics.png"] + results["profiles"]["files"]:
+        assert (out / name).is_file(), name
+    assert "Report:" in capsys.readouterr().out
