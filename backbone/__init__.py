@@ -10,10 +10,13 @@ from .conv import (
     SparseReLU,
     SubmanifoldConv3d,
     UpsampleConv3d,
+    conv_threads,
+    get_conv_threads,
+    set_conv_threads,
     sparse_conv,
 )
 from .gsnet import GSNet
-from .sparse import KernelMap, KernelMapCache, SparseTensor, kernel_offsets, pack_keys, unpack_keys
+from .sparse import KernelMap, KernelMapCache, RowBlock, SparseTensor, kernel_offsets, pack_keys, unpack_keys
 from .unet import BasicBlock, SparseUNet, UNetConfig, minkunet14, minkunet18
 from .voxelize import VoxelBatch, VoxelConfig, devoxelize, voxelize
 
@@ -23,6 +26,7 @@ __all__ = [
     "GSNet",
     "KernelMap",
     "KernelMapCache",
+    "RowBlock",
     "SparseBatchNorm",
     "SparseLinear",
     "SparseReLU",
@@ -33,11 +37,14 @@ __all__ = [
     "UpsampleConv3d",
     "VoxelBatch",
     "VoxelConfig",
+    "conv_threads",
     "devoxelize",
+    "get_conv_threads",
     "kernel_offsets",
     "minkunet14",
     "minkunet18",
     "pack_keys",
+    "set_conv_threads",
     "sparse_conv",
     "unpack_keys",
     "voxelize",

@@ -1,10 +1,24 @@
 """Sparse 3D convolutions, batch norm and ReLU on :class:`~backbone.sparse.SparseTensor`.
 
-A convolution is, for every kernel offset k: gather the input rows of k's pairs, multiply by the
-``[C_in, C_out]`` weight of k, and ``index_add_`` into the output rows. The backward pass is the
-same operation on the transposed map with transposed weights (no float atomics, no saved
-gathers), sharing each offset's gathered output gradient with the weight gradient, one
-``[C_in, P_k] @ [P_k, C_out]`` product per offset.
+A convolution gathers the input rows of each kernel offset k's pairs, multiplies them by the
+``[C_in, C_out]`` weight of k and ``index_add_``-s the products into the output rows, in pair
+order, so that each output row sums its terms in offset order. Offsets are taken in chunks of
+about :data:`CHUNK_BYTES` (one gather and one ``index_add_`` per chunk, one product per offset,
+in reused per-thread scratch memory). The backward pass is the same operation on the transposed
+map with transposed weights (no float atomics, no saved gathers), sharing each chunk's gathered
+output gradient with the weight gradient, one ``[C_in, P_k] @ [P_k, C_out]`` product per offset.
+
+Both cores: a map with at least :data:`MIN_SPLIT_PAIRS` pairs is split into :data:`SPLIT` blocks
+of consecutive output rows with about equal pairs (:meth:`~backbone.sparse.KernelMap.row_blocks`,
+built once per map). A block's rows are written by one task only, so the blocks run on
+:func:`set_conv_threads` threads (the caller's and helpers') without locks or atomics; the weight
+gradient is summed over the blocks in block order. The split depends on the map only, never on
+the thread count, so results are bitwise the same on 1 or 2 threads and run to run. The forward
+is also bitwise that of the whole map at once (with MKL a row of a product does not depend on
+the other rows; the tests check it), the backward equal to it up to float rounding (other
+summation orders). Torch's own intra-op threads (OpenMP) spin at barriers and were slow beside
+other busy processes; these helpers sleep in a queue instead, and a block that no helper has
+started when the caller is done with its own (its core busy elsewhere) is run by the caller.
 
 Weights are stored ``[K, C_in, C_out]`` with offsets ordered like
 :func:`~backbone.sparse.kernel_offsets` (dx, dy, dz lexicographic, dz fastest). The equivalent
@@ -15,28 +29,194 @@ dense weight is ``weight.reshape(k, k, k, C_in, C_out).permute(4, 3, 0, 1, 2)`` 
 from __future__ import annotations
 
 import math
-from typing import Sequence
+import threading
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
+from functools import partial
+from typing import Callable, Iterator, Sequence
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 from torch.autograd.function import once_differentiable
 
-from .sparse import KernelMap, SparseTensor
+from .sparse import KernelMap, RowBlock, SparseTensor
+
+#: Row blocks of a map that has at least :data:`MIN_SPLIT_PAIRS` pairs (fixed: results depend on it).
+SPLIT = 2
+#: Pairs (identity rows included) from which a map is split; smaller maps cost less than a hand-off.
+MIN_SPLIT_PAIRS = 16384
+#: Bytes of gathered and product rows per chunk of offsets (one gather and one scatter each):
+#: fewer, larger ops than one per offset, small enough to stay in cache (4 MiB was fastest on
+#: the demo rooms, 256 KiB and 16 MiB slower).
+CHUNK_BYTES = 1 << 22
+
+_arena = threading.local()
+_lock = threading.Lock()
+_threads = 1
+_helpers: ThreadPoolExecutor | None = None
+_helper_count = 0
 
 
-def _apply_map(
-    feats: Tensor, weight: Tensor, in_idx: Sequence[Tensor], out_idx: Sequence[Tensor], identity: int | None, n_out: int
-) -> Tensor:
-    """Sum over offsets k of ``feats[in_idx[k]] @ weight[k]`` added into rows ``out_idx[k]`` of ``[n_out, C_out]``."""
+def set_conv_threads(threads: int) -> None:
+    """Run sparse convolutions on ``threads`` threads: the calling one and ``threads - 1`` helpers
+    (at most :data:`SPLIT` are used). Results do not depend on it. Each thread runs torch with
+    its intra-op thread count, so ``threads * torch.get_num_threads()`` should not exceed the cores."""
+    global _threads, _helpers, _helper_count
+    if threads < 1:
+        raise ValueError(f"threads must be >= 1, got {threads}")
+    with _lock:
+        helpers = min(threads, SPLIT) - 1
+        if helpers != _helper_count:
+            if _helpers is not None:
+                _helpers.shutdown(wait=True)
+            _helpers = ThreadPoolExecutor(helpers, thread_name_prefix="qr-cl-conv") if helpers else None
+            _helper_count = helpers
+        _threads = threads
+
+
+def get_conv_threads() -> int:
+    """Threads sparse convolutions run on (:func:`set_conv_threads`; 1 unless set)."""
+    return _threads
+
+
+@contextmanager
+def conv_threads(threads: int) -> Iterator[None]:
+    """Run the block with :func:`set_conv_threads` ``(threads)``, restoring the previous count after."""
+    old = get_conv_threads()
+    set_conv_threads(threads)
+    try:
+        yield
+    finally:
+        set_conv_threads(old)
+
+
+def _without_grad(task: Callable[[], None]) -> None:
+    with torch.no_grad():
+        task()
+
+
+def _run(tasks: list[Callable[[], None]]) -> None:
+    """Run independent tasks (disjoint outputs): the first on this thread, the others on the
+    helpers; one that no helper has started when this thread is done is run here."""
+    helpers = _helpers
+    if helpers is None or len(tasks) == 1:
+        for task in tasks:
+            task()
+        return
+    futures = [helpers.submit(_without_grad, task) for task in tasks[1:]]
+    try:
+        tasks[0]()
+    finally:
+        for future, task in zip(futures, tasks[1:]):
+            if future.cancel():
+                task()
+            else:
+                future.result()
+
+
+def _blocks(kmap: KernelMap) -> tuple[RowBlock, ...]:
+    """The row blocks a convolution with ``kmap`` runs as (a function of the map only)."""
+    return kmap.row_blocks(SPLIT if kmap.pairs >= MIN_SPLIT_PAIRS else 1)
+
+
+def _scratch(rows: int, cols: int, dtype: torch.dtype, slot: int) -> Tensor:
+    """An uninitialised ``[rows, cols]`` view of this thread's scratch buffer ``slot`` (0 or 1),
+    grown when too small and kept: no fresh pages to fault in on every call. A thread runs one
+    block at a time, so a slot is never in use twice."""
+    buffers = _arena.__dict__.setdefault("buffers", {})
+    size = rows * cols
+    buffer = buffers.get((slot, dtype))
+    if buffer is None or buffer.numel() < size:
+        buffer = buffers[(slot, dtype)] = torch.empty(size, dtype=dtype)
+    return buffer[:size].view(rows, cols)
+
+
+def _chunks(bounds: tuple[int, ...], row_bytes: int) -> list[tuple[int, int, list[int]]]:
+    """Consecutive offset ranges ``[k0, k1)`` whose pairs take about :data:`CHUNK_BYTES` of
+    gathered and product rows (``row_bytes`` per pair), at least one offset each, with the
+    number of pairs of each of their offsets."""
+    chunks, first = [], 0
+    for k in range(1, len(bounds)):
+        if (bounds[k] - bounds[first]) * row_bytes >= CHUNK_BYTES or k == len(bounds) - 1:
+            chunks.append((first, k, [bounds[i + 1] - bounds[i] for i in range(first, k)]))
+            first = k
+    return chunks
+
+
+def _conv_rows(
+    feats: Tensor, weights: Sequence[Tensor], block: RowBlock, identity: int | None, out: Tensor
+) -> None:
+    """Rows ``[block.start, block.stop)`` of the convolution of ``feats`` ``[n_in, C_in]`` with
+    ``weights`` (K of ``[C_in, C_out]``) into ``out``: the identity's product, then for each chunk
+    of offsets one gather of its pairs' input rows, a product per offset and one ``index_add_``
+    in pair order (so a row's sum is taken in offset order)."""
+    rows = out[block.start : block.stop]
     if identity is not None:
-        out = feats @ weight[identity]
+        torch.mm(feats[block.start : block.stop], weights[identity], out=rows)
     else:
-        out = feats.new_zeros(n_out, weight.shape[2])
-    for k, (src, dst) in enumerate(zip(in_idx, out_idx)):
-        if k == identity or src.numel() == 0:
+        rows.zero_()
+    c_in, c_out = weights[0].shape
+    for k0, k1, sizes in _chunks(block.bounds, (c_in + c_out) * feats.element_size()):
+        a, b = block.bounds[k0], block.bounds[k1]
+        if b == a:
             continue
-        out.index_add_(0, dst, feats.index_select(0, src) @ weight[k])
+        gathered = _scratch(b - a, c_in, feats.dtype, 0)
+        torch.index_select(feats, 0, block.in_rows[a:b], out=gathered)
+        products = _scratch(b - a, c_out, feats.dtype, 1)
+        for k, g, p in zip(range(k0, k1), gathered.split(sizes), products.split(sizes)):
+            if k != identity and g.shape[0]:
+                torch.mm(g, weights[k], out=p)
+        rows.index_add_(0, block.out_rows[a:b], products)
+
+
+def _grad_rows(
+    grad_out: Tensor,
+    feats: Tensor,
+    weights_t: Sequence[Tensor],
+    block: RowBlock,
+    identity: int | None,
+    grad_feats: Tensor | None,
+    grad_weight: Sequence[Tensor] | None,
+) -> None:
+    """The backward of the pairs of ``block``, a block of the transposed map (``in_rows``: output
+    rows, ``out_rows``: input rows minus ``start``): rows ``[start, stop)`` of ``grad_feats``
+    (as :func:`_conv_rows` with ``weights_t``, K of ``[C_out, C_in]``) and these pairs' share of
+    the weight gradient into ``grad_weight`` (K of ``[C_in, C_out]``); a chunk's gathered output
+    gradient serves both. Either output may be None (not needed)."""
+    start, stop = block.start, block.stop
+    c_out, c_in = weights_t[0].shape
+    rows = None if grad_feats is None else grad_feats[start:stop]
+    if identity is not None:
+        if rows is not None:
+            torch.mm(grad_out[start:stop], weights_t[identity], out=rows)
+        if grad_weight is not None:
+            torch.mm(feats[start:stop].t(), grad_out[start:stop], out=grad_weight[identity])
+    elif rows is not None:
+        rows.zero_()
+    for k0, k1, sizes in _chunks(block.bounds, (c_in + c_out) * feats.element_size()):
+        a, b = block.bounds[k0], block.bounds[k1]
+        gathered = _scratch(b - a, c_out, grad_out.dtype, 0)
+        torch.index_select(grad_out, 0, block.in_rows[a:b], out=gathered)
+        inputs = _scratch(b - a, c_in, feats.dtype, 1)
+        if rows is not None and b > a:
+            for k, g, p in zip(range(k0, k1), gathered.split(sizes), inputs.split(sizes)):
+                if k != identity and g.shape[0]:
+                    torch.mm(g, weights_t[k], out=p)
+            rows.index_add_(0, block.out_rows[a:b], inputs)
+        if grad_weight is not None:
+            torch.index_select(feats[start:stop], 0, block.out_rows[a:b], out=inputs)
+            for k, g, f in zip(range(k0, k1), gathered.split(sizes), inputs.split(sizes)):
+                if k != identity:
+                    torch.mm(f.t(), g, out=grad_weight[k])
+
+
+def _apply_map(feats: Tensor, weight: Tensor, kmap: KernelMap) -> Tensor:
+    """Sum over offsets k of ``feats[in_idx[k]] @ weight[k]`` added into rows ``out_idx[k]`` of
+    ``[n_out, C_out]``, block by block on the convolution threads."""
+    out = feats.new_empty(kmap.n_out, weight.shape[2])
+    weights = weight.unbind(0)
+    _run([partial(_conv_rows, feats, weights, block, kmap.identity, out) for block in _blocks(kmap)])
     return out
 
 
@@ -45,7 +225,7 @@ class _SparseConvFunction(torch.autograd.Function):
     def forward(ctx, feats: Tensor, weight: Tensor, kmap: KernelMap) -> Tensor:
         ctx.save_for_backward(feats, weight)
         ctx.kmap = kmap
-        return _apply_map(feats, weight, kmap.in_idx, kmap.out_idx, kmap.identity, kmap.n_out)
+        return _apply_map(feats, weight, kmap)
 
     @staticmethod
     @once_differentiable
@@ -54,21 +234,18 @@ class _SparseConvFunction(torch.autograd.Function):
         kmap: KernelMap = ctx.kmap
         grad_out = grad_out.contiguous()
         need_feats, need_weight = ctx.needs_input_grad[:2]
-        grad_feats = feats.new_zeros(kmap.n_in, feats.shape[1]) if need_feats else None
-        grad_weight = torch.zeros_like(weight) if need_weight else None
-        for k, (src, dst) in enumerate(zip(kmap.in_idx, kmap.out_idx)):
-            if k == kmap.identity:
-                if need_feats:
-                    grad_feats.add_(grad_out @ weight[k].t())
-                if need_weight:
-                    torch.mm(feats.t(), grad_out, out=grad_weight[k])
-            elif src.numel():
-                g = grad_out.index_select(0, dst)
-                if need_feats:
-                    grad_feats.index_add_(0, src, g @ weight[k].t())
-                if need_weight:
-                    torch.mm(feats.index_select(0, src).t(), g, out=grad_weight[k])
-        return grad_feats, grad_weight, None
+        blocks = _blocks(kmap.transposed())
+        grad_feats = feats.new_empty(kmap.n_in, feats.shape[1]) if need_feats else None
+        shares = weight.new_empty(len(blocks), *weight.shape) if need_weight else None
+        weights_t = weight.transpose(1, 2).unbind(0)
+        _run(
+            [
+                partial(_grad_rows, grad_out, feats, weights_t, block, kmap.identity, grad_feats,
+                        None if shares is None else shares[b].unbind(0))
+                for b, block in enumerate(blocks)
+            ]
+        )
+        return grad_feats, None if shares is None else shares.sum(0), None
 
 
 def sparse_conv(feats: Tensor, weight: Tensor, kmap: KernelMap) -> Tensor:

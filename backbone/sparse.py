@@ -11,7 +11,7 @@ GS-Net are frozen).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 from torch import Tensor
@@ -84,12 +84,28 @@ def kernel_offsets(kernel_size: int) -> Tensor:
 
 
 @dataclass(frozen=True)
+class RowBlock:
+    """The pairs of a :class:`KernelMap` whose output rows lie in ``[start, stop)``, offset by offset.
+
+    Those of offset k are ``in_rows[bounds[k]:bounds[k + 1]]`` (input rows) and
+    ``out_rows[bounds[k]:bounds[k + 1]]`` (output rows minus ``start``), in the map's pair order;
+    the identity offset's pairs stay implicit (rows ``[start, stop)`` of the input).
+    """
+
+    start: int
+    stop: int
+    in_rows: Tensor
+    out_rows: Tensor
+    bounds: tuple[int, ...]
+
+
+@dataclass(frozen=True)
 class KernelMap:
     """Which input row feeds which output row through which kernel offset.
 
     ``in_idx[k]`` and ``out_idx[k]`` (int64, equal length) list the pairs of offset ``k``;
     ``identity`` is the offset whose pairs are ``(i, i)`` for every row (stored implicitly,
-    ``n_in == n_out``) or None.
+    ``n_in == n_out``) or None. Derived maps and row blocks are built once and kept on the map.
     """
 
     in_idx: tuple[Tensor, ...]
@@ -97,15 +113,62 @@ class KernelMap:
     n_in: int
     n_out: int
     identity: int | None = None
+    _derived: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     @property
     def volume(self) -> int:
         """Number of kernel offsets."""
         return len(self.in_idx)
 
+    @property
+    def pairs(self) -> int:
+        """Number of (input, output) pairs, the identity's ``n_out`` included."""
+        if "pairs" not in self._derived:
+            self._derived["pairs"] = sum(int(i.numel()) for i in self.in_idx) + (
+                self.n_out if self.identity is not None else 0
+            )
+        return self._derived["pairs"]
+
     def transposed(self) -> KernelMap:
-        """The same pairs with inputs and outputs swapped (the map of the transposed convolution)."""
-        return KernelMap(self.out_idx, self.in_idx, self.n_out, self.n_in, self.identity)
+        """The same pairs with inputs and outputs swapped (the map of the transposed convolution);
+        the same object on every call."""
+        if "transposed" not in self._derived:
+            self._derived["transposed"] = KernelMap(self.out_idx, self.in_idx, self.n_out, self.n_in, self.identity)
+        return self._derived["transposed"]
+
+    def row_blocks(self, count: int) -> tuple[RowBlock, ...]:
+        """The pairs split into ``count`` blocks of consecutive output rows, each with about the
+        same number of pairs (a block may be empty). Depends on the map and ``count`` only, and
+        is built once per ``count``."""
+        if count < 1:
+            raise ValueError(f"count must be >= 1, got {count}")
+        key = ("row_blocks", count)
+        if key not in self._derived:
+            self._derived[key] = self._split_rows(count)
+        return self._derived[key]
+
+    def _split_rows(self, count: int) -> tuple[RowBlock, ...]:
+        """:meth:`row_blocks`, built: cut where the running count of pairs per output row
+        passes each multiple of ``pairs / count``."""
+        degree = torch.zeros(self.n_out, dtype=torch.int64)
+        for dst in self.out_idx:
+            degree += torch.bincount(dst, minlength=self.n_out)
+        if self.identity is not None:
+            degree += 1
+        ends = torch.cumsum(degree, 0)
+        targets = torch.tensor([self.pairs * j // count for j in range(1, count)], dtype=torch.int64)
+        cuts = [0] + (torch.searchsorted(ends, targets) + 1).clamp_(max=self.n_out).tolist() + [self.n_out]
+        inner_cuts = torch.tensor(cuts[1:-1], dtype=torch.int64)
+        owner = [torch.bucketize(dst, inner_cuts, right=True) for dst in self.out_idx]
+        blocks = []
+        empty = torch.empty(0, dtype=torch.int64)
+        for b, (start, stop) in enumerate(zip(cuts[:-1], cuts[1:])):
+            mine = [o == b for o in owner]
+            in_rows = [src[m] for src, m in zip(self.in_idx, mine)]
+            bounds = [0] + torch.cumsum(torch.tensor([len(r) for r in in_rows], dtype=torch.int64), 0).tolist()
+            out_rows = torch.cat([empty] + [dst[m] - start for dst, m in zip(self.out_idx, mine)])
+            blocks.append(RowBlock(start, stop, torch.cat([empty] + in_rows), out_rows, tuple(bounds)))
+        return tuple(blocks)
 
 
 @dataclass(frozen=True)

@@ -1,12 +1,16 @@
-"""Sparse convolutions of backbone.conv against torch.nn.functional.conv3d on dense grids."""
+"""Sparse convolutions of backbone.conv against torch.nn.functional.conv3d on dense grids, and split
+over threads: bitwise the same on 1 or 2 threads and run to run."""
+
+import threading
 
 import pytest
 import torch
 import torch.nn.functional as F
 
-from qr_cl.backbone.conv import (DownsampleConv3d, SparseBatchNorm, SubmanifoldConv3d, UpsampleConv3d,
-                                 sparse_conv)
-from qr_cl.backbone.sparse import SparseTensor
+from qr_cl.backbone import SparseUNet, conv, minkunet14
+from qr_cl.backbone.conv import (DownsampleConv3d, SparseBatchNorm, SubmanifoldConv3d, UpsampleConv3d, conv_threads,
+                                 get_conv_threads, set_conv_threads, sparse_conv)
+from qr_cl.backbone.sparse import KernelMap, SparseTensor
 
 GRID = 8
 BATCH = 2
@@ -154,3 +158,109 @@ def test_bad_weight_shape_is_named():
         sparse_conv(x.feats, torch.zeros(27, 2, 4, dtype=torch.float64), x.cache.submanifold(1, 3))
     with pytest.raises(ValueError, match="odd"):
         SubmanifoldConv3d(3, 4, kernel_size=4)
+
+
+def conv_and_grads(feats: torch.Tensor, weight: torch.Tensor, kmap: KernelMap, seed: int) -> list[torch.Tensor]:
+    """Output, d feats and d weight of a random linear loss of ``sparse_conv``."""
+    f = feats.detach().requires_grad_()
+    w = weight.detach().requires_grad_()
+    y = sparse_conv(f, w, kmap)
+    probe = torch.randn(y.shape, generator=torch.Generator().manual_seed(seed))
+    (y * probe).sum().backward()
+    return [y.detach(), f.grad, w.grad]
+
+
+def reference_conv(feats: torch.Tensor, weight: torch.Tensor, kmap: KernelMap) -> torch.Tensor:
+    """The convolution as one gather, product and scatter per offset over all pairs (no blocks)."""
+    out = feats @ weight[kmap.identity] if kmap.identity is not None else feats.new_zeros(kmap.n_out, weight.shape[2])
+    for k, (src, dst) in enumerate(zip(kmap.in_idx, kmap.out_idx)):
+        if k != kmap.identity:
+            out = out.index_add(0, dst, feats[src] @ weight[k])
+    return out
+
+
+def float_maps() -> list[tuple[KernelMap, int, int]]:
+    """(map, C_in, C_out) of a submanifold, a down- and an up-sampling convolution on float32 voxels."""
+    x = random_sparse(3, 0.5, seed=23)
+    return [(x.cache.submanifold(1, 3), 5, 7), (x.cache.downsample(1), 6, 4), (x.cache.upsample(2), 4, 6)]
+
+
+@pytest.fixture
+def split_small_maps(monkeypatch):
+    """Split every map with 64 or more pairs (the default threshold keeps test-sized maps whole)."""
+    monkeypatch.setattr(conv, "MIN_SPLIT_PAIRS", 64)
+
+
+def test_split_convolution_is_bitwise_the_same_on_one_or_two_threads_and_run_to_run(split_small_maps):
+    g = torch.Generator().manual_seed(0)
+    for kmap, c_in, c_out in float_maps():
+        assert len(conv._blocks(kmap)) == conv.SPLIT
+        feats, weight = torch.randn(kmap.n_in, c_in, generator=g), torch.randn(kmap.volume, c_in, c_out, generator=g)
+        with conv_threads(1):
+            one = conv_and_grads(feats, weight, kmap, seed=1)
+        with conv_threads(2):
+            runs = [conv_and_grads(feats, weight, kmap, seed=1) for _ in range(3)]
+        for two in runs:
+            assert all(torch.equal(a, b) for a, b in zip(one, two))
+
+
+def test_split_forward_is_bitwise_the_whole_map_and_backward_within_rounding(split_small_maps):
+    """A row of a product does not depend on the other rows, so the forward of the blocks is that
+    of all pairs at once; the backward sums the weight gradient over the blocks and adds the
+    identity's rows first: float rounding only."""
+    g = torch.Generator().manual_seed(1)
+    for kmap, c_in, c_out in float_maps():
+        feats, weight = torch.randn(kmap.n_in, c_in, generator=g), torch.randn(kmap.volume, c_in, c_out, generator=g)
+        with conv_threads(2):
+            split = conv_and_grads(feats, weight, kmap, seed=2)
+        f, w = feats.clone().requires_grad_(), weight.clone().requires_grad_()
+        ref = reference_conv(f, w, kmap)
+        probe = torch.randn(ref.shape, generator=torch.Generator().manual_seed(2))
+        (ref * probe).sum().backward()
+        assert torch.equal(split[0], ref)
+        torch.testing.assert_close(split[1], f.grad, rtol=1e-5, atol=1e-5)
+        torch.testing.assert_close(split[2], w.grad, rtol=1e-5, atol=1e-5)
+
+
+def test_a_block_no_helper_started_is_run_by_the_caller(split_small_maps):
+    kmap, c_in, c_out = float_maps()[0]
+    g = torch.Generator().manual_seed(2)
+    feats, weight = torch.randn(kmap.n_in, c_in, generator=g), torch.randn(kmap.volume, c_in, c_out, generator=g)
+    with conv_threads(1):
+        one = conv_and_grads(feats, weight, kmap, seed=3)
+    release = threading.Event()
+    with conv_threads(2):
+        busy = conv._helpers.submit(release.wait)     # the only helper is held up
+        try:
+            two = conv_and_grads(feats, weight, kmap, seed=3)
+        finally:
+            release.set()
+        busy.result()
+    assert all(torch.equal(a, b) for a, b in zip(one, two))
+
+
+def test_unet_training_step_is_bitwise_the_same_on_one_or_two_threads(split_small_maps):
+    coords = random_sparse(1, 0.4, seed=29).coords
+    config = minkunet14(4, stem_channels=8, enc_channels=(8, 16), enc_blocks=(1, 1), dec_channels=(16, 8),
+                        dec_blocks=(1, 1))
+    results = []
+    for threads in (1, 2, 2):
+        torch.manual_seed(0)
+        net = SparseUNet(config).train()
+        feats = torch.randn(coords.shape[0], 4)
+        with conv_threads(threads):
+            out = net(SparseTensor(coords, feats)).feats
+            loss = (out * torch.linspace(-1, 1, out.numel()).view_as(out)).sum()
+            loss.backward()
+        results.append([loss.detach()] + [p.grad for p in net.parameters()])
+    for other in results[1:]:
+        assert all(torch.equal(a, b) for a, b in zip(results[0], other))
+
+
+def test_conv_threads_are_set_and_restored():
+    before = get_conv_threads()
+    with conv_threads(2):
+        assert get_conv_threads() == 2 and conv._helpers is not None
+    assert get_conv_threads() == before
+    with pytest.raises(ValueError, match="threads"):
+        set_conv_threads(0)

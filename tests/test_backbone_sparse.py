@@ -138,3 +138,40 @@ def test_empty_level_maps():
     assert all(t.numel() == 0 for t in cache.submanifold(1, 3).in_idx)
     kmap = cache.downsample(1)
     assert kmap.n_in == 0 and kmap.n_out == 0 and cache.coords(2).shape == (0, 4)
+
+
+@pytest.mark.parametrize("count", [1, 2, 3])
+@pytest.mark.parametrize("which", ["submanifold", "down", "up"])
+def test_row_blocks_split_the_pairs_by_output_row(count, which):
+    cache = KernelMapCache()
+    cache.register(random_coords(400, 6, seed=3), 1)
+    down = cache.downsample(1)
+    kmap = {"submanifold": cache.submanifold(1, 3), "down": down, "up": cache.upsample(2)}[which]
+    blocks = kmap.row_blocks(count)
+    assert kmap.row_blocks(count) is blocks and len(blocks) == count
+    assert [b.start for b in blocks] == [0] + [b.stop for b in blocks[:-1]] and blocks[-1].stop == kmap.n_out
+    pairs = [b.stop - b.start if kmap.identity is not None else 0 for b in blocks]
+    def offset(block, k):
+        return block.in_rows[block.bounds[k]:block.bounds[k + 1]], block.out_rows[block.bounds[k]:block.bounds[k + 1]]
+
+    for k in range(kmap.volume):
+        src = torch.cat([offset(b, k)[0] for b in blocks])
+        dst = torch.cat([offset(b, k)[1] + b.start for b in blocks])
+        assert count > 1 or torch.equal(src, kmap.in_idx[k])
+        order = torch.argsort(kmap.out_idx[k], stable=True)
+        mine = torch.argsort(dst, stable=True)
+        assert torch.equal(src[mine], kmap.in_idx[k][order]) and torch.equal(dst[mine], kmap.out_idx[k][order])
+        for i, b in enumerate(blocks):
+            assert bool(((offset(b, k)[1] >= 0) & (offset(b, k)[1] < b.stop - b.start)).all())
+            pairs[i] += offset(b, k)[0].numel()
+    assert sum(pairs) == kmap.pairs
+    degree = 27 if which == "submanifold" else 8
+    assert max(pairs) - min(pairs) <= 2 * degree          # balanced to within a row's pairs or two
+
+
+def test_transposed_map_is_kept():
+    cache = KernelMapCache()
+    cache.register(random_coords(100, 5, seed=4), 1)
+    down = cache.downsample(1)
+    assert cache.upsample(2) is cache.upsample(2) is down.transposed()
+    assert down.transposed().transposed().in_idx is down.in_idx

@@ -10,8 +10,9 @@ import torch.nn.functional as F
 from qr_cl.app.data import load_scene_folder
 from qr_cl.app.loss import (ViewSelections, contrastive_loss, cosine_logits, rays_loss, sample_rays, scene_loss,
                             step_rays)
-from qr_cl.app.train import TrainConfig, train
-from qr_cl.backbone import GSNet, VoxelConfig, devoxelize, minkunet14
+from qr_cl.app import train as train_module
+from qr_cl.app.train import TrainConfig, conv_thread_count, train
+from qr_cl.backbone import GSNet, VoxelConfig, conv, devoxelize, minkunet14
 from qr_cl.render import rasterize
 from qr_cl.scene import Gaussians
 
@@ -123,6 +124,30 @@ def test_same_seed_same_curve_with_or_without_kept_selections(scene, tmp_path):
     assert kept.history == again.history == fresh.history
     assert kept.views.nbytes > 0 and fresh.views.nbytes == 0
     assert all(0 < t < 1 for t in kept.touched)
+
+
+def test_same_seed_same_curve_on_one_or_two_convolution_threads(scene, tmp_path, monkeypatch):
+    """Every kernel map of the tiny room split in two blocks; train() gives the convolutions the
+    process's cores (1, then 2): bitwise the same losses and weights."""
+    monkeypatch.setattr(conv, "MIN_SPLIT_PAIRS", 64)
+    runs = []
+    for cores in (1, 2):
+        monkeypatch.setattr(train_module, "process_cores", lambda cores=cores: cores)
+        assert conv_thread_count() == cores
+        runs.append(train(_cfg(scene, tmp_path / str(cores)), progress=False))
+    one, two = runs
+    assert one.history == two.history
+    for a, b in zip(one.net.parameters(), two.net.parameters()):
+        assert torch.equal(a, b)
+
+
+def test_convolution_threads_times_torch_threads_fit_the_cores(monkeypatch):
+    monkeypatch.setattr(train_module, "process_cores", lambda: 2)
+    assert conv_thread_count() == 2            # one torch thread (this module's fixture)
+    monkeypatch.setattr(torch, "get_num_threads", lambda: 2)
+    assert conv_thread_count() == 1
+    monkeypatch.setattr(train_module, "process_cores", lambda: 1)
+    assert conv_thread_count() == 1
 
 
 def test_cosine_logits_match_normalize_and_its_gradient():

@@ -10,10 +10,16 @@ ReduceLROnPlateau (factor 0.1) on the mean loss of every ``plateau_interval`` st
 Where the time goes (demo rooms, 2 cores): the selections are geometry, so each view's
 whole-image selection is made once and a step's rays are gathered from it (up to
 ``view_selections_mb`` of them are kept; then views are selected ray by ray each step), and the
-next step's rays are made on a background thread while the network runs. Torch runs one
-intra-op thread (the CLI's ``--torch-threads``): its OpenMP workers spin-wait at barriers, and
-beside other busy processes two of them made a step 3.6-16x slower than one. PoCL gets the cores
-torch leaves free (:func:`qr_cl.app.model.cap_kernel_threads`; one of two) for the kernels.
+next step's rays are made on a background thread while this step renders and back-propagates.
+Torch runs one intra-op thread (the CLI's ``--torch-threads``): its OpenMP workers spin-wait at
+barriers, and beside other busy processes two of them made a step 3.6-16x slower than one. PoCL
+gets the cores torch leaves free (:func:`qr_cl.app.model.cap_kernel_threads`; one of two) for
+the kernels. The sparse convolutions, most of a step, run on :func:`conv_thread_count` threads
+(both cores; results do not depend on the count, see :mod:`qr_cl.backbone.conv`). They and the
+kernels take turns: the training thread waits while it renders, and the next step's rays are
+started after the network's forward (its convolutions), beside the blend, so that a convolution
+thread and a PoCL worker are not both asked for one core (the blend backward, ~50 ms, outlasts
+the rays' ~12 ms).
 
 Scale-out: ``torchrun --nproc_per_node N -m qr_cl.train ...`` runs data-parallel over the
 scenes of a step (gloo on CPU): rank r takes slots r, r+N, ...; gradients are summed with
@@ -42,10 +48,11 @@ import torch
 import torch.distributed as dist
 from tqdm import tqdm
 
+from ..backbone.conv import conv_threads
 from ..runtime import SAMPLERS
 from .data import load_scene_folder
 from .loss import StepRays, ViewSelections, rays_loss, step_rays
-from .model import NETS, build_net, cap_kernel_threads, torch_threads
+from .model import NETS, build_net, cap_kernel_threads, process_cores, torch_threads
 
 @dataclass
 class TrainConfig:
@@ -84,6 +91,14 @@ def step_slots(cfg: TrainConfig, step: int, n_scenes: int) -> list[int]:
     """Scene indices of the ``batch_scenes`` slots of ``step`` (the same on every rank)."""
     rng = np.random.default_rng([cfg.seed, step, 7])
     return rng.choice(n_scenes, cfg.batch_scenes, replace=cfg.batch_scenes > n_scenes).tolist()
+
+
+def conv_thread_count() -> int:
+    """Threads for GS-Net's sparse convolutions: the cores this process may use
+    (:func:`~qr_cl.app.model.process_cores`) over torch's intra-op threads, at least 1, so that
+    convolution threads times torch threads never exceed the cores. PoCL's workers idle while the
+    convolutions run (they take turns with the kernels: see the module docstring)."""
+    return max(1, process_cores() // torch.get_num_threads())
 
 
 def save_atomic(obj, path: Path) -> None:
@@ -157,19 +172,19 @@ class Trainer:
     def train_step(self) -> tuple[float, int]:
         """One optimizer step over this step's scenes; returns (global loss, rays on this rank).
 
-        The next step's rays are made on a background thread while this step's network runs
-        (unless this is the last step of ``cfg.steps``)."""
+        The next step's rays are made on a background thread, started after the first slot's
+        network forward (unless this is the last step of ``cfg.steps``)."""
         cfg = self.cfg
         self.net.train()
         self.opt.zero_grad(set_to_none=False)
         mine = self.my_slots(self.step)
         made = [self._ahead.pop((self.step, slot)).result() if (self.step, slot) in self._ahead
                 else self.make_rays(self.step, slot, scene) for slot, scene in mine]
-        if self.step + 1 < cfg.steps:
-            self.prefetch(self.step + 1)
         total, rays = torch.zeros(()), 0
-        for (slot, scene), step in zip(mine, made):
+        for i, ((slot, scene), step) in enumerate(zip(mine, made)):
             table = self.net(self.batch(scene), torch.from_numpy(step.rows))
+            if i == 0 and self.step + 1 < cfg.steps:
+                self.prefetch(self.step + 1)
             loss = rays_loss(step, table, cfg.temperature)
             (loss / cfg.batch_scenes).backward()
             total += loss.detach() / cfg.batch_scenes
@@ -232,16 +247,17 @@ def train(cfg: TrainConfig, resume: bool = False, rank: int = 0, world: int = 1,
     bar = tqdm(total=cfg.steps, initial=trainer.step, desc=f"train {cfg.sampler}", unit="step",
                disable=not progress or rank != 0)
     try:
-        last = time.perf_counter()
-        while trainer.step < cfg.steps:
-            loss, rays = trainer.train_step()
-            if trainer.step % cfg.checkpoint_every == 0 or trainer.step == cfg.steps:
-                trainer.save()
-            now = time.perf_counter()     # rays of all ranks over the whole iteration, checkpoint included
-            bar.update(1)
-            bar.set_postfix(loss=f"{loss:.3f}", rays_s=f"{rays * world / (now - last):.0f}",
-                            touched=f"{trainer.touched[-1]:.0%}")
-            last = now
+        with conv_threads(conv_thread_count()):
+            last = time.perf_counter()
+            while trainer.step < cfg.steps:
+                loss, rays = trainer.train_step()
+                if trainer.step % cfg.checkpoint_every == 0 or trainer.step == cfg.steps:
+                    trainer.save()
+                now = time.perf_counter()     # rays of all ranks over the whole iteration, checkpoint included
+                bar.update(1)
+                bar.set_postfix(loss=f"{loss:.3f}", rays_s=f"{rays * world / (now - last):.0f}",
+                                touched=f"{trainer.touched[-1]:.0%}")
+                last = now
     except KeyboardInterrupt:
         trainer.save()
         bar.close()
