@@ -173,10 +173,10 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
     for c in range(n_cameras):
         view = View(viewmats[c].detach().cpu().numpy().astype(np.float32), Ks[c].detach().cpu().numpy().astype(np.float32),
                     int(width), int(height), float(near_plane), float(far_plane), sampler, k)
-        features = _colours(per_colors[c], means, viewmats[c], sh_degree)
+        features = None if render_mode in ("D", "ED") else _colours(per_colors[c], means, viewmats[c], sh_degree)
         if render_mode != "RGB":
             depth = (means @ viewmats[c, 2, :3].detach() + viewmats[c, 2, 3].detach())[:, None]
-            features = depth if render_mode in ("D", "ED") else torch.cat([features, depth], 1)
+            features = depth if features is None else torch.cat([features, depth], 1)
         background = per_bg[c]
         sel = view_selection(means, quats, scales, opacities, view)
         image, alpha = RasterFunction.apply(means, quats, scales, opacities, features, background, sel, view)
