@@ -32,7 +32,7 @@ from tqdm import tqdm
 import qr_cl
 from qr_cl.app.data import load_scene_folder
 from qr_cl.app.evaluate import network_features
-from qr_cl.app.images import plt
+from qr_cl.app.images import save_image_grid
 from qr_cl.app.train import TrainConfig, train
 
 DEFAULT_PLY = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "wakufactory-fox" / "fox.ply"
@@ -154,23 +154,6 @@ def part_accuracy(folder: Path, checkpoint: Path, maps: list[np.ndarray], protot
     return hits / len(masked), np.bincount(masked).max() / len(masked), predicted
 
 
-def save_strip(path: Path, rows: list[list[np.ndarray]], titles: list[str]) -> None:
-    """A grid of images: one row per view, one column per title."""
-    fig, axes = plt.subplots(len(rows), len(titles), figsize=(3 * len(titles), 2.4 * len(rows)), squeeze=False)
-    for r, images in enumerate(rows):
-        for c, image in enumerate(images):
-            if image.ndim == 2:                       # part maps: -1 (no part) left white
-                axes[r, c].imshow(np.ma.masked_less(image, 0), cmap="tab10", vmin=0, vmax=9)
-            else:
-                axes[r, c].imshow(image)
-            axes[r, c].axis("off")
-            if r == 0:
-                axes[r, c].set_title(titles[c])
-    fig.tight_layout()
-    fig.savefig(path, dpi=80)
-    plt.close(fig)
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--ply", type=Path, default=DEFAULT_PLY, help="a 3DGS capture (INRIA PLY)")
@@ -211,9 +194,9 @@ def main() -> None:
     print(f"GS-Net on the fitted Gaussians: part pixel accuracy {accuracy:.1%} (largest part alone: {largest:.1%})")
 
     shown = range(0, len(cameras), max(1, len(cameras) // 3))
-    save_strip(args.out / "fit.png", [[x[v].clamp(0, 1).numpy() for x in (targets, before, after)] for v in shown],
+    save_image_grid(args.out / "fit.png", [[x[v].numpy() for x in (targets, before, after)] for v in shown],
                ["capture (target)", f"{len(fitted)} Gaussians before", f"after {args.fit_steps} steps"])
-    save_strip(args.out / "parts.png", [[maps[v], predicted[v]] for v in shown],
+    save_image_grid(args.out / "parts.png", [[maps[v], predicted[v]] for v in shown],
                ["capture's parts (masks)", "GS-Net on the fit"])
     print(f"wrote {args.out / 'fit.png'}, {args.out / 'parts.png'}")
 

@@ -53,3 +53,22 @@ def plot_transmittance_profiles(profiles: dict[str, tuple[np.ndarray, np.ndarray
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
+
+
+def save_image_grid(path: str | os.PathLike, rows: list[list[np.ndarray]], titles: list[str]) -> None:
+    """A titled grid of pictures saved to ``path``: one row per entry of ``rows``, one column per
+    title. RGB images [H,W,3] are clipped to [0, 1]; label maps [H,W] (integers, -1 = none, left
+    white) are drawn with a 10-colour map."""
+    fig, axes = plt.subplots(len(rows), len(titles), figsize=(3 * len(titles), 2.4 * len(rows)), squeeze=False)
+    for r, images in enumerate(rows):
+        for c, image in enumerate(images):
+            if image.ndim == 2:
+                axes[r, c].imshow(np.ma.masked_less(image, 0), cmap="tab10", vmin=0, vmax=9)
+            else:
+                axes[r, c].imshow(np.clip(image, 0, 1))
+            axes[r, c].axis("off")
+            if r == 0:
+                axes[r, c].set_title(titles[c], fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+    plt.close(fig)

@@ -43,7 +43,7 @@ from ..stages.select import select, transmittance_profile
 from .benchmark import dense_scene, real_scenes
 from .data import SceneData, load_scene_folder
 from .evaluate import evaluate_features, ground_truth, network_features
-from .images import plot_transmittance_profiles, plt, save_rgb
+from .images import plot_transmittance_profiles, plt, save_image_grid
 from .metrics import SUBSETS
 from .model import cap_kernel_threads, torch_threads
 from .synthetic import SyntheticConfig, build_folder, synthetic_scene
@@ -425,7 +425,8 @@ def rgb_fidelity(name: str, g: Gaussians, cams: list[Camera], ks: tuple[int, ...
     first, k = renders[0], max(ks)
     q = first["quantile"][k][0]
     panels = [first["volume"], q, q * first["alpha"], 4 * np.abs(np.clip(q, 0, 1) - np.clip(first["volume"], 0, 1))]
-    save_rgb(out / f"rgb_{name}.png", np.concatenate(panels, axis=1))
+    save_image_grid(out / f"rgb_{name}.png", [panels], ["V-Render", f"Q-Render K={k} (raw, normalized)",
+                                                        f"Q-Render K={k} x V-Render alpha", "4 |V - raw Q|"])
     return rows
 
 
