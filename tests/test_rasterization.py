@@ -284,3 +284,25 @@ def test_alpha_gradients_follow_the_derivation(random_scene, sampler, k):
     scale = np.abs(auto).max()
     np.testing.assert_allclose(derived, auto, atol=1e-9 * scale)
     np.testing.assert_allclose(kernel, auto, atol=2e-4 * scale)
+
+
+def test_pixel_subset_gradients_equal_twin(random_scene):
+    """RasterFunction on a pixel subset (View.pixels; the kernels' non-full ray path)."""
+    from qr_cl.render import RasterFunction, View, view_selection
+    m, q, s, o, v, K, w, h = random_scene
+    rng = np.random.default_rng(9)
+    pixels = rng.integers(0, [w, h], (300, 2)).astype(np.int32)
+    colors = rng.random((len(m), 3)).astype(np.float32)
+    inputs = tensors(m, q, s, o, colors, grad=True)
+    view = View(v, K, w, h, sampler="quantile", k=5, pixels=pixels)
+    sel = view_selection(*inputs[:4], view)
+    image, _ = RasterFunction.apply(*inputs, None, sel, view)
+    target = torch.randn(image.shape)
+    (image * target).sum().backward()
+    twin = [t.detach().double().requires_grad_(True) for t in inputs]
+    e = project_ref.ewa(twin[0], twin[1], twin[2], v, K, w, h)
+    want, _ = blend_ref.render_rays(e["means2d"], e["conics"], twin[3], twin[4], sel.host()["ids"], pixels, True)
+    (want * target.double()).sum().backward()
+    for name, got, ref in zip(["means", "quats", "scales", "opacities", "colors"], inputs, twin):
+        scale = float(ref.grad.abs().max())
+        torch.testing.assert_close(got.grad.double(), ref.grad, atol=2e-4 * scale, rtol=1e-3, msg=name)
