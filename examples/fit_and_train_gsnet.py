@@ -190,7 +190,8 @@ def main() -> None:
                       views=2, rays=512, sampler="quantile", k=10, grid_size=float(np.ptp(fitted.means, 0).max()) / 40,
                       checkpoint_every=args.train_steps)
     train(cfg)
-    accuracy, largest, predicted = part_accuracy(args.out / "scene", args.out / "run" / "checkpoint.pt", maps, prototypes)
+    accuracy, largest, predicted = part_accuracy(args.out / "scene", args.out / "run" / "checkpoint.pt", maps,
+                                                 prototypes)
     print(f"GS-Net on the fitted Gaussians: part pixel accuracy {accuracy:.1%} (largest part alone: {largest:.1%})")
 
     shown = range(0, len(cameras), max(1, len(cameras) // 3))

@@ -171,7 +171,8 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
         return _empty(n_cameras, width, height, channels, per_bg)
     images, alphas, selections = [], [], []
     for c in range(n_cameras):
-        view = View(viewmats[c].detach().cpu().numpy().astype(np.float32), Ks[c].detach().cpu().numpy().astype(np.float32),
+        view = View(viewmats[c].detach().cpu().numpy().astype(np.float32),
+                    Ks[c].detach().cpu().numpy().astype(np.float32),
                     int(width), int(height), float(near_plane), float(far_plane), sampler, k)
         features = None if render_mode in ("D", "ED") else _colours(per_colors[c], means, viewmats[c], sh_degree)
         if render_mode != "RGB":

@@ -113,7 +113,8 @@ def splat_backward(sel: Selection, d_alpha: cla.Array) -> cla.Array:
     rt = sel.plan.runtime
     t = sel.transpose()
     d_splats = device_empty(rt, (sel.n_gaussians, 8), np.float32)
-    rt.launch("splat_backward", sel.n_gaussians, defines={"VW": 1, "NV": 1}, n=sel.n_gaussians, n_chunks=t.chunks, cursor=t.cursor,
-              t_ray=t.ray, t_entry=t.entry, d_alpha=d_alpha, splats=sel.plan.splats, **_ray_pixels(sel),
-              d_splats=d_splats)
+    # splat_backward reads no feature rows; blend.cl is built with some row vector width all the same
+    rt.launch("splat_backward", sel.n_gaussians, defines={"VW": 1, "NV": 1}, n=sel.n_gaussians,
+              n_chunks=t.chunks, cursor=t.cursor, t_ray=t.ray, t_entry=t.entry, d_alpha=d_alpha,
+              splats=sel.plan.splats, **_ray_pixels(sel), d_splats=d_splats)
     return d_splats
