@@ -8,10 +8,12 @@ import pytest
 
 from qr_cl.app.cli import main
 from qr_cl.app.data import load_scene_folder
-from qr_cl.app.evaluate import evaluate_features, ground_truth, pseudo_labels
+from qr_cl.app.evaluate import evaluate_features, ground_truth, pseudo_labels, reached_gaussians
+from qr_cl.app.loss import view_plan
 from qr_cl.app.metrics import confusion_matrix, miou_macc
 from qr_cl.app.synthetic import class_prototypes
 from qr_cl.scene import Gaussians
+from qr_cl.stages.select import select
 from synthetic_helpers import tiny_config, tiny_scene
 
 
@@ -73,6 +75,24 @@ def test_oracle_features_score_high_random_low(scene):
         assert good[size]["miou"] > 0.7 and rand[size]["miou"] < 0.3
     gt_only, src = ground_truth(data, "gaussians")
     assert src == "gaussians" and evaluate_features(data, oracle, gt_only)[19]["miou"] > 0.95
+
+
+def test_reached_gaussians_are_those_some_pixel_selects(scene):
+    data = load_scene_folder(scene)
+    reached = reached_gaussians(data, "quantile", 4)
+    expected = np.zeros(len(data.gaussians), bool)
+    for view in range(len(data.frames)):
+        ids = select(view_plan(data, view), "quantile", 4).host()["ids"]
+        expected[ids[ids >= 0]] = True
+    assert np.array_equal(reached, expected)
+    assert 0 < reached.mean() < 1
+    more = reached_gaussians(data, "volume", 0)        # every Gaussian a ray blends holds K's choices
+    assert np.all(more[reached]) and more.sum() > reached.sum()
+    g = data.gaussians                                   # a Gaussian without opacity is never reached
+    hidden = int(np.flatnonzero(more)[0])
+    data.gaussians = Gaussians(g.means, g.quats, g.scales, np.where(np.arange(len(g.means)) == hidden, 0,
+                                                                    g.opacities).astype(np.float32), g.sh)
+    assert not reached_gaussians(data, "volume", 0)[hidden]
 
 
 def test_eval_command_writes_tables_images_and_ply(scene, tmp_path, capsys):

@@ -153,12 +153,14 @@ def test_renderers_of_the_plans():
     assert len(renderers(PLANS["quick"])) < len(full)
 
 
-def _results(q5: float = 30.0, t5: float = 25.0, noise_half: float = 39.5, strat_ms: float = 20.0) -> dict:
+def _results(q5: float = 30.0, t5: float = 25.0, noise_half: float = 39.5, strat_ms: float = 20.0,
+             baseline: float = 45.0) -> dict:
     def run(sampler, k, miou, noise=0.0, seed=0):
         return {"sampler": sampler, "k": k, "noise": noise, "seed": seed, "label": Renderer(sampler, k, noise, seed).label,
                 "steps": 10,
                 "train_s": 1.0, "final_loss": 0.5, "miou19": miou, "macc19": miou + 5, "miou15": miou + 1,
-                "macc15": 0.0, "miou10": miou + 2, "macc10": 0.0}
+                "macc15": 0.0, "miou10": miou + 2, "macc10": 0.0, "miou19_reached": miou + 3,
+                "macc19_reached": miou + 4}
     runs = [run("volume", 0, 40.0), run("topk", 5, t5), run("quantile", 5, q5), run("quantile", 40, 40.5),
             run("stratified", 40, 40.2), run("quantile", 40, noise_half, 0.5), run("quantile", 40, 12.0, 4.0),
             run("quantile", 40, 41.7, seed=1)]
@@ -173,6 +175,9 @@ def _results(q5: float = 30.0, t5: float = 25.0, noise_half: float = 39.5, strat
                                      "timing_rounds": 1, "timing_views": 1},
             "seed": 0, "device": "cpu", "wall_s": 60.0, "scenes": {"train": ["a"], "held_out": "b"},
             "statistics": stats, "runs": runs, "render_ms": times,
+            "baseline": {"label": "per-scene baseline, Q-Render K=40", "steps": 10, "train_s": 2.0,
+                         "miou19": baseline, "macc19": 60.0, "miou19_reached": 48.0, "macc19_reached": 65.0},
+            "reached": {"gaussians": 7, "labelled": 9},
             "profiles": {"k": 10, "rays": 4, "entries_mean": 80.0, "gap": {"Q-Render K=10": [0.1, 0.05]},
                          "files": ["transmittance_ray000.png"]},
             "rgb": [{"scene": "fox", "k": 20, "views": 1, "size": "8x6", "psnr_raw": 21.5, "psnr_alpha": 47.4,
@@ -181,19 +186,23 @@ def _results(q5: float = 30.0, t5: float = 25.0, noise_half: float = 39.5, strat
 
 
 def test_claims_follow_the_numbers():
-    assert [c["holds"] for c in paper_claims(_results())] == [True, True, True, True, True]
-    claims = paper_claims(_results(q5=30.0, t5=28.0, noise_half=38.0, strat_ms=10.5))
-    assert [c["holds"] for c in claims] == [True, False, False, False, True]
+    assert [c["holds"] for c in paper_claims(_results())] == [True, True, True, True, True, True]
+    # GS-Net's 40.5 is 0.81x of 50 (holds) and 0.79x of 51.5 (fails)
+    claims = paper_claims(_results(q5=30.0, t5=28.0, noise_half=38.0, strat_ms=10.5, baseline=51.5))
+    assert [c["holds"] for c in claims] == [True, False, False, False, False, True]
+    assert "40.5 vs 51.5 (0.79x)" in claims[4]["measured"] and "43.5 vs 48.0 (0.91x)" in claims[4]["measured"]
+    assert paper_claims(_results(baseline=50.0))[4]["holds"] is True
     bad = _results()
     bad["rgb"][0]["psnr_alpha"] = 25.0
     bad["runs"][3]["miou19"] = 38.0                       # Q-Render K=40 two points under V-Render
     claims = paper_claims(bad)
-    assert claims[0]["holds"] is False and claims[4]["holds"] is False
+    assert claims[0]["holds"] is False and claims[5]["holds"] is False
     missing = _results()
     missing["runs"] = [r for r in missing["runs"] if r["sampler"] != "topk"]
     missing["rgb"] = []
+    del missing["baseline"]
     claims = paper_claims(missing)
-    assert claims[1]["holds"] is None and claims[4]["holds"] is None
+    assert claims[1]["holds"] is None and claims[4]["holds"] is None and claims[5]["holds"] is None
 
 
 def test_report_writer(tmp_path):
@@ -208,7 +217,10 @@ def test_report_writer(tmp_path):
     assert "| 0.5 | 39.5 | 44.5 | 50.18 |" in text
     assert "| fox | 1 | 8x6 | 20 | 21.5 | 47.4 | 45.0 |" in text
     assert "| Q-Render K=10 | 0.100 | 0.050 |" in text
-    assert text.count("| reproduced |") == 5
+    assert text.count("| reproduced |") == 6
+    assert "(7 of 9)" in text
+    assert "| per-scene baseline, Q-Render K=40 | 45.0 | 60.0 | 48.0 | 65.0 | 2 |" in text
+    assert "| GS-Net, Q-Render K=40 | 40.5 | 45.5 | 43.5 | 44.5 | 1 |" in text
     assert "scored mIoU19 41.7 against 40.5 (+1.2 points)" in text
     assert "| Q-Render K=40, seed +1 | 41.7 |" in text
 
@@ -226,6 +238,8 @@ def test_smoke_run_writes_the_report(tmp_path, data_dir, capsys):
     results = json.loads((out / "results.json").read_text())
     assert {r["label"] for r in results["runs"]} == {r.label for r in renderers(PLANS["smoke"])}
     assert {t["sampler"] for t in results["render_ms"]} == {"volume", "topk", "quantile", "stratified", "volume_fused"}
+    assert 0 < results["reached"]["gaussians"] <= results["reached"]["labelled"]
+    assert {"miou19", "miou19_reached"} <= set(results["baseline"]) and "miou19_reached" in results["runs"][0]
     real = (data_dir / "wakufactory-fox" / "fox.ply").is_file()
     assert ("fox" in {s["scene"] for s in results["statistics"]}) == real
     assert ("fox" in {r["scene"] for r in results["rgb"]}) == real

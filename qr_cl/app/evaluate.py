@@ -20,8 +20,10 @@ from tqdm import tqdm
 
 from ..render import rasterize
 from ..scene import Gaussians, quat_to_rotmat
+from ..stages.select import ray_entries, select
 from .data import ClassTable, SceneData, load_scene_folder
 from .images import save_rgb
+from .loss import view_plan
 from .metrics import NYU40_NAMES, SUBSETS, miou_macc
 from .model import build_net, torch_threads
 
@@ -71,6 +73,18 @@ def ground_truth(scene: SceneData, source: str = "auto", k: int = 5, max_mahalan
         return labels, "gaussians"
     raise ValueError(f"{scene.root}: no ground truth for source={source!r} (labels/points.ply or "
                      "labels/gaussian_labels.npy)")
+
+
+def reached_gaussians(scene: SceneData, sampler: str = "quantile", k: int = 40) -> np.ndarray:
+    """[N] bool: the Gaussians that ``sampler``'s selection (``k``) of some pixel of some view of
+    ``scene`` holds, i.e. those its training rays can reach. A per-scene model (the free-feature
+    baseline) learns only these; GS-Net predicts every Gaussian from its neighbourhood."""
+    reached = np.zeros(len(scene.gaussians), bool)
+    for view in range(len(scene.frames)):
+        sel = select(view_plan(scene, view), sampler, k)
+        n = sel.n_rays
+        reached[sel.ids.get()[ray_entries(sel.offsets.get()[:n], sel.count.get()[:n])]] = True
+    return reached
 
 
 def predict(features: np.ndarray, classes: ClassTable) -> np.ndarray:
