@@ -114,11 +114,18 @@ def test_tiny_demo_writes_the_report(tmp_path, capsys):
     args = ["demo", "--out", str(tmp_path / "demo"), "--cache", str(tmp_path / "cache"), "--train-scenes", "1",
             "--gaussians", "2500", "--steps", "3", "--short-steps", "2", "--rays", "64", "--views", "1"]
     assert main(args) == 0
-    assert "Report:" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "Report:" in out
     report = (tmp_path / "demo" / "report.md").read_text()
     for method in ("Q-Render K=40", "Q-Render K=5", "top-K K=40", "top-K K=5", "V-Render", "per-scene baseline"):
         assert method in report, method
     assert "held-out" in report and "training" in report
+    assert "3dgs style" in out and any(p.name.startswith("splat-room-") for p in (tmp_path / "cache").iterdir())
+    compared = report.split("## Renderers compared")[1].split("##")[0]
+    assert sum(line.startswith("| ") for line in compared.splitlines()) == 7       # header, rule, 5 renderers
+    against = report.split("## GS-Net against the per-scene baseline")[1].split("##")[0]
+    assert against.count("/ 3 steps |") == 4                                       # GS-Net and baseline, 2 rooms
     res = json.loads((tmp_path / "demo" / "results.json").read_text())
     assert len(res["rows"]) == 14 and all(0 <= r["metrics"]["19"]["macc"] <= 1 for r in res["rows"])
+    assert all(0 <= r["reached"]["macc"] <= 1 for r in res["rows"])
     assert (tmp_path / "demo" / "runs" / "gsnet-q40" / "checkpoint.pt").is_file()
