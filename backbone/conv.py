@@ -44,8 +44,9 @@ from .sparse import KernelMap, RowBlock, SparseTensor
 
 #: Row blocks of a map that has at least :data:`MIN_SPLIT_PAIRS` pairs (fixed: results depend on it).
 SPLIT = 2
-#: Pairs (identity rows included) from which a map is split; smaller maps cost less than a hand-off.
-MIN_SPLIT_PAIRS = 16384
+#: Pairs (identity rows included) from which a map is split (training steps on the demo rooms:
+#: 4096 gave 1.57 cores busy and 161 ms a step, 16384 1.50 and 166 ms).
+MIN_SPLIT_PAIRS = 4096
 #: Bytes of gathered and product rows per chunk of offsets (one gather and one scatter each):
 #: fewer, larger ops than one per offset, small enough to stay in cache (4 MiB was fastest on
 #: the demo rooms, 256 KiB and 16 MiB slower).
@@ -96,9 +97,10 @@ def _without_grad(task: Callable[[], None]) -> None:
         task()
 
 
-def _run(tasks: list[Callable[[], None]]) -> None:
-    """Run independent tasks (disjoint outputs): the first on this thread, the others on the
-    helpers; one that no helper has started when this thread is done is run here."""
+def run_tasks(tasks: list[Callable[[], None]]) -> None:
+    """Run independent tasks (disjoint outputs) on the :func:`set_conv_threads` threads: the
+    first on this thread, the others on the helpers; one that no helper has started when this
+    thread is done is run here. With one thread they run here in order."""
     helpers = _helpers
     if helpers is None or len(tasks) == 1:
         for task in tasks:
@@ -216,7 +218,7 @@ def _apply_map(feats: Tensor, weight: Tensor, kmap: KernelMap) -> Tensor:
     ``[n_out, C_out]``, block by block on the convolution threads."""
     out = feats.new_empty(kmap.n_out, weight.shape[2])
     weights = weight.unbind(0)
-    _run([partial(_conv_rows, feats, weights, block, kmap.identity, out) for block in _blocks(kmap)])
+    run_tasks([partial(_conv_rows, feats, weights, block, kmap.identity, out) for block in _blocks(kmap)])
     return out
 
 
@@ -238,7 +240,7 @@ class _SparseConvFunction(torch.autograd.Function):
         grad_feats = feats.new_empty(kmap.n_in, feats.shape[1]) if need_feats else None
         shares = weight.new_empty(len(blocks), *weight.shape) if need_weight else None
         weights_t = weight.transpose(1, 2).unbind(0)
-        _run(
+        run_tasks(
             [
                 partial(_grad_rows, grad_out, feats, weights_t, block, kmap.identity, grad_feats,
                         None if shares is None else shares[b].unbind(0))

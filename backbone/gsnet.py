@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from functools import partial
 from typing import Sequence
 
 import torch
@@ -10,6 +11,7 @@ from torch import Tensor, nn
 
 from ..runtime import host_empty
 from ..scene.gaussians import Gaussians
+from .conv import SPLIT, run_tasks
 from .sparse import SparseTensor
 from .unet import SparseUNet, UNetConfig, minkunet14
 from .voxelize import Reduce, VoxelBatch, VoxelConfig, devoxelize, voxelize
@@ -83,6 +85,9 @@ class GSNet(nn.Module):
 
 #: Rows per block of :func:`unit_linear`'s backward row dot products (a small reused temporary).
 _BLOCK_ROWS = 1024
+#: Rows from which :func:`unit_linear` runs as :data:`~backbone.conv.SPLIT` row blocks on the
+#: convolution threads (fixed: the weight gradient's summation order depends on the blocks).
+MIN_SPLIT_ROWS = 4096
 
 
 def _pooled(rows: int, cols: int) -> Tensor:
@@ -91,17 +96,34 @@ def _pooled(rows: int, cols: int) -> Tensor:
     return torch.from_numpy(host_empty((rows, cols)))
 
 
+def _row_blocks(rows: int) -> list[slice]:
+    """The row blocks :func:`unit_linear` runs as: :data:`~backbone.conv.SPLIT` about equal ones
+    from :data:`MIN_SPLIT_ROWS` rows, else one (a function of the row count only)."""
+    n = SPLIT if rows >= MIN_SPLIT_ROWS else 1
+    bounds = [rows * i // n for i in range(n + 1)]
+    return [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:])]
+
+
 class _UnitLinear(torch.autograd.Function):
     """y = normalize(x @ weight.T + bias) row by row, with y and the gradient of the linear output
     in pooled host memory, and the backward's row dot products taken in blocks: no [U, C]
-    temporaries are allocated per call (torch's normalize backward allocates several)."""
+    temporaries are allocated per call (torch's normalize backward allocates several). Large
+    inputs run as row blocks on the convolution threads (:func:`~backbone.conv.run_tasks`); rows
+    are independent, and the weight and bias gradients add the blocks' parts in block order, so
+    results do not depend on the thread count."""
 
     @staticmethod
     def forward(ctx, x: Tensor, weight: Tensor, bias: Tensor) -> Tensor:
         y = _pooled(x.shape[0], weight.shape[0])
-        torch.addmm(bias, x, weight.t(), out=y)
-        inv = torch.linalg.vector_norm(y, dim=1, keepdim=True).clamp_min_(1e-12).reciprocal_()
-        y.mul_(inv)
+        inv = torch.empty(x.shape[0], 1)
+
+        def rows(b: slice) -> None:
+            torch.addmm(bias, x[b], weight.t(), out=y[b])
+            torch.linalg.vector_norm(y[b], dim=1, keepdim=True, out=inv[b])
+            inv[b].clamp_min_(1e-12).reciprocal_()
+            y[b].mul_(inv[b])
+
+        run_tasks([partial(rows, b) for b in _row_blocks(x.shape[0])])
         ctx.save_for_backward(x, weight, y, inv)
         return y
 
@@ -110,14 +132,26 @@ class _UnitLinear(torch.autograd.Function):
         x, weight, y, inv = ctx.saved_tensors
         grad = grad.contiguous()
         dz = _pooled(*y.shape)                        # dz = (g - y (y . g)) / |z|
-        for start in range(0, y.shape[0], _BLOCK_ROWS):
-            block = slice(start, start + _BLOCK_ROWS)
-            torch.mul(grad[block], y[block], out=dz[block])
-            dot = dz[block].sum(1, keepdim=True)
-            torch.mul(y[block], dot, out=dz[block])
-        torch.sub(grad, dz, out=dz)
-        dz.mul_(inv)
-        return dz @ weight, dz.t() @ x, dz.sum(0)
+        dx = torch.empty_like(x)
+        blocks = _row_blocks(y.shape[0])
+        parts: list[tuple[Tensor, Tensor] | None] = [None] * len(blocks)
+
+        def rows(i: int, b: slice) -> None:
+            for start in range(b.start, b.stop, _BLOCK_ROWS):
+                sub = slice(start, min(start + _BLOCK_ROWS, b.stop))
+                torch.mul(grad[sub], y[sub], out=dz[sub])
+                dot = dz[sub].sum(1, keepdim=True)
+                torch.mul(y[sub], dot, out=dz[sub])
+            torch.sub(grad[b], dz[b], out=dz[b])
+            dz[b].mul_(inv[b])
+            torch.mm(dz[b], weight, out=dx[b])
+            parts[i] = (dz[b].t() @ x[b], dz[b].sum(0))
+
+        run_tasks([partial(rows, i, b) for i, b in enumerate(blocks)])
+        dweight, dbias = parts[0]
+        for dw, db in parts[1:]:
+            dweight, dbias = dweight + dw, dbias + db
+        return dx, dweight, dbias
 
 
 def unit_linear(x: Tensor, weight: Tensor, bias: Tensor) -> Tensor:

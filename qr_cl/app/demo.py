@@ -69,7 +69,7 @@ def _train(cfg, resume: bool = False) -> tuple[dict, float]:
 def run(args: argparse.Namespace) -> int:
     """Run the demo (module docstring) and print where the report is."""
 
-    cap_kernel_threads(1)                     # before the first render (scene generation)
+    cap_kernel_threads()                      # before the first render (scene generation)
     t0 = time.perf_counter()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -757,7 +757,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """``qr-cl reproduce``: run the plan and print the report's path and claims."""
-    cap_kernel_threads(1)                     # before the first render (scene generation)
+    cap_kernel_threads()                      # before the first render (scene generation)
     mode = "smoke" if args.smoke else "quick" if args.quick else "full"
     out = Path(args.out)
     results = run_reproduction(PLANS[mode], mode, out, Path(args.cache) if args.cache else None,

@@ -12,14 +12,14 @@ whole-image selection is made once and a step's rays are gathered from it (up to
 ``view_selections_mb`` of them are kept; then views are selected ray by ray each step), and the
 next step's rays are made on a background thread while this step renders and back-propagates.
 Torch runs one intra-op thread (the CLI's ``--torch-threads``): its OpenMP workers spin-wait at
-barriers, and beside other busy processes two of them made a step 3.6-16x slower than one. PoCL
-gets the cores torch leaves free (:func:`qr_cl.app.model.cap_kernel_threads`; one of two) for
-the kernels. The sparse convolutions, most of a step, run on :func:`conv_thread_count` threads
-(both cores; results do not depend on the count, see :mod:`qr_cl.backbone.conv`). They and the
-kernels take turns: the training thread waits while it renders, and the next step's rays are
-started after the network's forward (its convolutions), beside the blend, so that a convolution
-thread and a PoCL worker are not both asked for one core (the blend backward, ~50 ms, outlasts
-the rays' ~12 ms).
+barriers, and beside other busy processes two of them made a step 3.6-16x slower than one. The
+sparse convolutions and GS-Net's head, most of a step, run as row blocks on
+:func:`conv_thread_count` threads (both cores; results do not depend on the count, see
+:mod:`qr_cl.backbone.conv`), and PoCL runs the kernels on both cores
+(:func:`qr_cl.app.model.cap_kernel_threads`). They take turns: the training thread waits while it
+renders, and the next step's rays are started after the network's forward (its convolutions),
+beside the blend, so that a convolution thread and a PoCL worker are seldom both asked for one
+core.
 
 Scale-out: ``torchrun --nproc_per_node N -m qr_cl.train ...`` runs data-parallel over the
 scenes of a step (gloo on CPU): rank r takes slots r, r+N, ...; gradients are summed with
@@ -319,7 +319,7 @@ def run(args: argparse.Namespace) -> int:
     rank = int(os.environ.get("RANK", "0"))
     if world > 1:
         dist.init_process_group("gloo")
-    cap_kernel_threads(args.torch_threads)
+    cap_kernel_threads()
     try:
         with torch_threads(args.torch_threads):
             trainer = train(config_from_args(args), args.resume, rank, world)
