@@ -128,7 +128,7 @@ class Trainer:
         self.touched: list[float] = []     # U / N of each slot this process trained (not checkpointed)
         self._ahead: dict[tuple[int, int], Future] = {}
         self._worker: ThreadPoolExecutor | None = None
-        self.opt = torch.optim.Adam(self.net.parameters(), lr=cfg.lr)
+        self.opt = torch.optim.Adam(self.net.parameters(), lr=cfg.lr, fused=True)
         self.sched = torch.optim.lr_scheduler.ReduceLROnPlateau(self.opt, factor=0.1, patience=cfg.patience)
         self.step = 0
         self.window: list[float] = []
