@@ -13,9 +13,10 @@
    mIoU19 also over the Gaussians the views reach, all the baseline can learn) and writes
    ``report.md`` (with the renderer comparison), ``results.json`` and images into ``--out``.
 
-The default budget (480 main / 160 comparison steps) spends about the time the demo took when a
-training step still computed every Gaussian's features (120 / 40 steps then, ~6 minutes on 2
-cores) on 4x the training.
+The default budget (720 main / 240 comparison steps on 60k-Gaussian rooms) was chosen to stay
+well within 10 minutes on 2 cores: the demo took about 6 minutes for 120 / 40 steps on 24k-Gaussian
+flat rooms when a training step still computed every Gaussian's features, and 4.6 minutes for
+480 / 160 steps on the 60k rooms after the training-speed work (issue 11).
 """
 from __future__ import annotations
 
@@ -52,9 +53,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--gaussians", type=int,
                         help="Gaussians per room (default: " + ", ".join(f"{n} for {s} rooms" for s, n in
                                                                         ROOM_GAUSSIANS.items()) + ")")
-    parser.add_argument("--steps", type=int, default=480, help="steps of the main run and the baseline (default 480)")
-    parser.add_argument("--short-steps", type=int, default=160,
-                        help="steps of the renderer comparison runs (default 160)")
+    parser.add_argument("--steps", type=int, default=720, help="steps of the main run and the baseline (default 720)")
+    parser.add_argument("--short-steps", type=int, default=240,
+                        help="steps of the renderer comparison runs (default 240)")
     parser.add_argument("--rays", type=int, default=2048, help="rays per view (default 2048)")
     parser.add_argument("--views", type=int, default=4, help="views per step (default 4)")
     parser.add_argument("--seed", type=int, default=0)
@@ -135,7 +136,7 @@ def run(args: argparse.Namespace) -> int:
     report = ["# qr-cl demo", "",
               f"GS-Net (small sparse UNet) trained on {len(train_paths)} synthetic rooms; evaluated on a held-out "
               f"room ({Path(held_path).name}) and a training room ({Path(train_paths[0]).name}). The \"CLIP\" "
-              "features are simulated (class prototypes plus noise; see qr_cl/synthetic.py). mIoU/mAcc in % over "
+              "features are simulated (class prototypes plus noise; see qr_cl/app/synthetic.py). mIoU/mAcc in % over "
               f"the classes present, ground truth {truth_text}.", "", table, "",
               f"## Renderers compared ({args.short_steps} steps of {args.views} views x {args.rays} rays each)", "",
               "The same network, budget and seed through each renderer (the Q-Render K=40 run is the first "
