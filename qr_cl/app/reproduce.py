@@ -19,7 +19,7 @@
 6. ``report.md`` (tables, the paper's claims checked against the numbers), ``results.json`` and
    the plots, in ``--out``.
 
-Plans (:data:`PLANS`): "full" (25 minutes measured on 2 cores shared with other jobs), "quick"
+Plans (:data:`PLANS`): "full" (15 minutes measured on 2 cores), "quick"
 (``--quick``, 6 minutes: fewer K values, noise levels and steps, 2 training rooms) and "smoke"
 (``--smoke``, seconds on tiny rooms: checks the wiring, its numbers mean nothing).
 """
