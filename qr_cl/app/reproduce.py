@@ -20,7 +20,7 @@
    the plots, in ``--out``.
 
 Plans (:data:`PLANS`): "full" (15 minutes measured on 2 cores), "quick"
-(``--quick``, 6 minutes: fewer K values, noise levels and steps, 2 training rooms) and "smoke"
+(``--quick``, 5 minutes: fewer K values, noise levels and steps, 2 training rooms) and "smoke"
 (``--smoke``, seconds on tiny rooms: checks the wiring, its numbers mean nothing).
 """
 from __future__ import annotations
@@ -744,7 +744,7 @@ def run_reproduction(plan: Plan, mode: str, out: Path, cache: Path | None, data:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``qr-cl reproduce``."""
     parser.add_argument("--quick", action="store_true",
-                        help="the quick plan (about 6 minutes on 2 cores): top-K/Q-Render K in {5, 10, 40}, "
+                        help="the quick plan (about 5 minutes on 2 cores): top-K/Q-Render K in {5, 10, 40}, "
                              "noise {0, 0.5, 2}, 150 steps, 2 training rooms")
     parser.add_argument("--smoke", action="store_true", help="seconds on tiny rooms (tests; numbers mean nothing)")
     parser.add_argument("--out", default="qr-cl-reproduce", help="report folder (default ./qr-cl-reproduce)")
