@@ -5,6 +5,8 @@ import torch
 import torch.nn.functional as F
 
 from qr_cl.backbone import GSNet, SparseTensor, SparseUNet, VoxelConfig, devoxelize, minkunet14, minkunet18
+from qr_cl.backbone.conv import conv_threads
+from qr_cl.backbone.gsnet import _row_blocks, unit_linear
 from qr_cl.scene import Gaussians
 
 SMALL = dict(stem_channels=8, stem_kernel=3, enc_channels=(8, 16, 16), enc_blocks=(1, 1, 1), dec_channels=(16, 8, 8), dec_blocks=(1, 1, 1))
@@ -188,8 +190,6 @@ def test_gsnet_overfits_three_labelled_clusters():
 
 @pytest.mark.parametrize("rows", [7, 5000])          # one block, and two row blocks on the conv threads
 def test_unit_linear_equals_normalized_linear_and_does_not_depend_on_threads(rows):
-    from qr_cl.backbone.conv import conv_threads
-    from qr_cl.backbone.gsnet import _row_blocks, unit_linear
     assert len(_row_blocks(rows)) == (1 if rows < 4096 else 2)
     g = torch.Generator().manual_seed(rows)
     x, w, b = torch.randn(rows, 24, generator=g), torch.randn(40, 24, generator=g), torch.randn(40, generator=g)
