@@ -80,7 +80,7 @@ def test_blend(benchmark, setup, bench_full, sampler, k):
 
 @pytest.mark.parametrize("sampler,k", CASES)
 def test_backward(benchmark, setup, bench_full, sampler, k):
-    """dF from dImage, including the transpose of the selection (rebuilt every round)."""
+    """dF from dImage (on GPU-shaped runtimes including the transpose, rebuilt every round)."""
     plan, features, out = setup
     sel = select(plan, sampler, k or 1)
 

@@ -3,10 +3,13 @@
    forward:  image[p, :] = sum_j w[p, j] F[id[p, j], :] + t_rem[p] * background
    backward: dF[g, :] = sum over entries (p, j) with id[p, j] = g of w[p, j] dImage[p, :]
 
-   Rows are cstride floats (a multiple of VW * NV); one work-item per (row, channel chunk of NV
-   vectors of VW floats), explicit vector types as in vrender.cl. The backward gathers over the
-   selection transposed by transpose.cl, so the sum order per Gaussian is fixed: the result is
-   bitwise reproducible. */
+   Rows are cstride floats (a multiple of VW * NV), read and written with explicit vector types as
+   in vrender.cl. The forward runs one work-item per (row, channel chunk of NV vectors of VW
+   floats). The backward sums each Gaussian's entries in one fixed order, by ray then by position
+   in the ray, without atomics, so its result is bitwise reproducible; two kernels give the same
+   bytes: a gather over the selection transposed by transpose.cl (GPU shapes: many short
+   work-items) and a scatter by a few work-items that own ranges of Gaussians (CPU shapes: no
+   transpose, and every dImage row is read whole). */
 #include "common.h"
 
 /* Forward. Rays as in select.cl (full image tile-major, or a pixel subset); entries of row p
@@ -59,6 +62,32 @@ __kernel void blend_backward(const int n, __global const int *order,   /* [N] Ga
     }
     __global float *out = dfeatures + (size_t)g * cstride + c0;
     for (int v = 0; v < NV; v++) VSTORE(acc[v], v, out);
+}
+
+/* Backward scatter: work-item m of n_owners owns the Gaussians [n m / n_owners, n (m + 1) / n_owners),
+   zeroes their rows of dF, then walks every ray in order and adds w dImage[p, :] to the rows of
+   the Gaussians it owns. Each owner reads all the entries' ids but only its own rows. */
+__kernel void blend_backward_scatter(const int n, const int n_owners, const int n_rays,
+                                     __global const int *offsets, __global const int *count,
+                                     __global const int *sel_ids, __global const float *sel_w,
+                                     __global const float *dimage,   /* [P, cstride] */
+                                     const int cstride, __global float *dfeatures) {   /* [N, cstride] */
+    const int m = get_global_id(0);
+    if (m >= n_owners) return;
+    const int g0 = (int)((long)n * m / n_owners), g1 = (int)((long)n * (m + 1) / n_owners);
+    const int n_vec = cstride / VW;
+    for (int g = g0; g < g1; g++)
+        for (int v = 0; v < n_vec; v++) VSTORE((vec_t)(0.f), v, dfeatures + (size_t)g * cstride);
+    for (int p = 0; p < n_rays; p++) {
+        __global const float *d = dimage + (size_t)p * cstride;
+        for (int j = offsets[p]; j < offsets[p] + count[p]; j++) {
+            const int g = sel_ids[j];
+            if (g < g0 || g >= g1) continue;
+            const float w = sel_w[j];
+            __global float *out = dfeatures + (size_t)g * cstride;
+            for (int v = 0; v < n_vec; v++) VSTORE(VLOAD(v, out) + w * VLOAD(v, d), v, out);
+        }
+    }
 }
 
 /* ---- gradients w.r.t. the geometry: dL/dalpha per entry, then per Gaussian splat ---- */

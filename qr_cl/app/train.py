@@ -50,6 +50,7 @@ from tqdm import tqdm
 
 from ..backbone.conv import conv_threads
 from ..runtime import SAMPLERS
+from ..stages import prepare_backward
 from .data import load_scene_folder
 from .loss import StepRays, ViewSelections, rays_loss, step_rays
 from .model import NETS, build_net, cap_kernel_threads, process_cores, torch_threads
@@ -146,11 +147,11 @@ class Trainer:
         return [(slot, slots[slot]) for slot in range(self.rank, len(slots), self.world)]
 
     def make_rays(self, step: int, slot: int, scene: int) -> StepRays:
-        """The rays of ``slot`` of ``step`` (scene index ``scene``), selected and re-indexed, with the
-        selection's transpose (the blend backward's view of it) made too: geometry only, so it
-        can run while the network of the previous step does."""
+        """The rays of ``slot`` of ``step`` (scene index ``scene``), selected and re-indexed, with
+        what the blend backward needs of them made too (:func:`prepare_backward`): geometry only,
+        so it can run while the network of the previous step does."""
         rays = step_rays(self.scenes[scene], self.cfg, np.random.default_rng([self.cfg.seed, step, slot]), self.views)
-        rays.selection.transpose()
+        prepare_backward(rays.selection)
         return rays
 
     def prefetch(self, step: int) -> None:

@@ -40,7 +40,7 @@ class BlendFunction(torch.autograd.Function):
     output still uses; [P, cstride] with a [P, C] view returned when C < cstride); backward
     likewise reads dImage in place and writes dF straight into the returned gradient. On devices
     that do not share host memory the same calls copy through pooled device buffers. The
-    backward is the deterministic transposed gather; the background gets its gradient
+    backward is :func:`blend_backward` (deterministic: a fixed sum order per Gaussian); the background gets its gradient
     sum_p t_rem[p] dImage[p]. The selection gets none.
     """
 
@@ -70,7 +70,7 @@ def _blend_image(sel: Selection, features: torch.Tensor, background: torch.Tenso
 
 
 def _feature_grad(sel: Selection, grad_image: torch.Tensor, channels: int) -> torch.Tensor:
-    """dL/dfeatures [N,C] by the deterministic transposed gather (blend_backward)."""
+    """dL/dfeatures [N,C] by the deterministic blend_backward."""
     rt = sel.plan.runtime
     cstride = channel_layout(channels)[2]
     host, d = _output(sel.n_gaussians, channels, cstride)

@@ -14,6 +14,8 @@ import pyopencl.array as cla
 from ..runtime import channel_layout, check_buffer, device_empty, padded_vector, to_device
 from .select import Selection
 
+OWNERS_PER_CORE = 2   # the CPU backward scatter's work-items per compute unit (measured: 1-8)
+
 
 def _check_rows(array: cla.Array, rows: int, cstride: int, name: str) -> None:
     if array.shape != (rows, cstride) or array.dtype != np.float32:
@@ -54,20 +56,36 @@ def blend_backward(sel: Selection, dimage: cla.Array, channels: int, out: cla.Ar
 
     dimage: float32 [P, cstride] device rows (the gradient of blend_forward's image); out: an
     optional float32 [N, cstride] device array to write into (else one from the runtime's pool).
-    The sum order per Gaussian is fixed by :meth:`Selection.transpose`, so repeated calls return
-    identical bytes.
+    Each Gaussian's entries are summed by ray, then by position in the ray, so repeated calls
+    return identical bytes, on either kernel: CPU-shaped runtimes scatter with OWNERS_PER_CORE
+    work-items per compute unit, each owning a range of Gaussians (no transpose); GPU-shaped ones
+    gather over :meth:`Selection.transpose`.
     """
     rt = sel.plan.runtime
     vw, nv, cstride = channel_layout(channels, rt.gpu_shaped)
     _check_rows(dimage, sel.n_rays, cstride, "dimage")
     check_buffer(rt, 4 * sel.n_gaussians * cstride, f"dF of {sel.n_gaussians} Gaussians x {cstride} channels")
-    t = sel.transpose()
     dfeatures = device_empty(rt, (sel.n_gaussians, cstride), np.float32) if out is None else out
     _check_rows(dfeatures, sel.n_gaussians, cstride, "out")
+    if not rt.gpu_shaped:
+        owners = max(1, min(sel.n_gaussians, OWNERS_PER_CORE * rt.device.max_compute_units))
+        rt.launch("blend_backward_scatter", owners, defines={"VW": vw, "NV": nv}, local_size=(1,),
+                  n=sel.n_gaussians, n_owners=owners, n_rays=sel.n_rays, offsets=sel.offsets,
+                  count=sel.count, sel_ids=sel.ids, sel_w=sel.weights, dimage=dimage, cstride=cstride,
+                  dfeatures=dfeatures)
+        return dfeatures
+    t = sel.transpose()
     rt.launch("blend_backward", (sel.n_gaussians, cstride // (vw * nv)), defines={"VW": vw, "NV": nv},
               n=sel.n_gaussians, order=sel.backward_order(), n_chunks=t.chunks, cursor=t.cursor, t_ray=t.ray,
               t_w=t.weight, dimage=dimage, cstride=cstride, dfeatures=dfeatures)
     return dfeatures
+
+
+def prepare_backward(sel: Selection) -> None:
+    """Make ahead what :func:`blend_backward` will need of ``sel`` (geometry only: the transpose,
+    on GPU-shaped runtimes), e.g. on another thread while the network runs."""
+    if sel.plan.runtime.gpu_shaped:
+        sel.transpose()
 
 
 def _ray_pixels(sel: Selection) -> dict:
