@@ -36,7 +36,7 @@ __kernel void blend(__global const int *offsets, __global const int *count,
     const float tb = use_bg ? t_rem[p] : 0.f;
     for (int v = 0; v < NV; v++) {
         const vec_t bg = use_bg ? VLOAD(v, background + c0) : (vec_t)(0.f);
-        VSTORE(acc[v] + tb * bg, v, out);
+        VSTREAM(acc[v] + tb * bg, v, out);
     }
 }
 

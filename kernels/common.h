@@ -175,6 +175,26 @@ typedef CAT(float, VW) vec_t;
 #define VSTORE(v, i, p) CAT(vstore, VW)(v, i, p)
 #endif
 
+/* VSTREAM(v, i, p): VSTORE of an output that the kernel does not read again, as a non-temporal
+   store where the compiler offers one (clang's builtin) and the address is aligned to vec_t:
+   the line is written without being read first (no read-for-ownership) and does not evict
+   cached inputs. Measured on PoCL (AVX-512, the fox at 640x480 x 512-D): Q-Render K=40 blend
+   41.8 -> 25.4 ms, fused V-Render 73.2 -> 63.5 ms. */
+#if defined(__has_builtin)
+#if __has_builtin(__builtin_nontemporal_store)
+#define HAVE_NONTEMPORAL_STORE
+#endif
+#endif
+#ifdef HAVE_NONTEMPORAL_STORE
+#define VSTREAM(v, i, p) do { \
+        __global vec_t *at_ = (__global vec_t *)((p) + (i) * VW); \
+        if (((size_t)at_ & (sizeof(vec_t) - 1)) == 0) __builtin_nontemporal_store((v), at_); \
+        else VSTORE(v, i, p); \
+    } while (0)
+#else
+#define VSTREAM(v, i, p) VSTORE(v, i, p)
+#endif
+
 /* The sum of the VW lanes of v. */
 static inline float vec_sum(vec_t v) {
     float s = 0.f;

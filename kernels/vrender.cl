@@ -11,10 +11,12 @@
 #define BATCH 32
 
 /* For each lane l with row[l] >= 0: out_l[c] = (init ? 0 : out_l[c]) + sum_j w[j]_l features[id[j], c]
-   + bg_scale_l * background[c], out_l the lane's row of image. */
+   + bg_scale_l * background[c], out_l the lane's row of image; last: the final write of the rows
+   (streamed, VSTREAM). */
 static inline void blend_batch(__global float *image, __global const float *features, const int cstride,
                                const int *id, const lanef *w, const int count, const lanei row,
-                               const int init, const lanef bg_scale, __global const float *background) {
+                               const int init, const int last, const lanef bg_scale,
+                               __global const float *background) {
     for (int l = 0; l < TILE; l++) {
         if (LANE_I(row, l) < 0) continue;
         __global float *out = image + (size_t)LANE_I(row, l) * cstride;
@@ -30,7 +32,10 @@ static inline void blend_batch(__global float *image, __global const float *feat
             }
             if (bg != 0.f)
                 for (int v = 0; v < NV; v++) acc[v] += bg * VLOAD(v, background + c0);
-            for (int v = 0; v < NV; v++) VSTORE(acc[v], v, out + c0);
+            if (last)
+                for (int v = 0; v < NV; v++) VSTREAM(acc[v], v, out + c0);
+            else
+                for (int v = 0; v < NV; v++) VSTORE(acc[v], v, out + c0);
         }
     }
 }
@@ -58,12 +63,12 @@ __kernel void vrender(__global const int2 *ranges,     /* [tiles] [start, end) i
         batch_w[count] = w;                            /* w_i = T_i alpha'_i */
         depth_sum += w * s.s6;
         if (++count == BATCH) {
-            blend_batch(image, features, cstride, batch_id, batch_w, count, row, init, (lanef)(0.f),
+            blend_batch(image, features, cstride, batch_id, batch_w, count, row, init, 0, (lanef)(0.f),
                         background);
             count = 0;
             init = 0;
         })
-    blend_batch(image, features, cstride, batch_id, batch_w, count, row, init,
+    blend_batch(image, features, cstride, batch_id, batch_w, count, row, init, 1,
                 use_bg ? T : (lanef)(0.f), background);
     const lanef d = select((lanef)(0.f), depth_sum / (1.f - T), T < 1.f);
     for (int l = 0; l < TILE; l++) {

@@ -6,7 +6,7 @@ import pyopencl.array as cla
 import pytest
 
 from qr_cl.render import rasterize_plan
-from qr_cl.runtime import channel_layout, padded_rows
+from qr_cl.runtime import channel_layout, padded_rows, shared_array
 from qr_cl.stages import blend as blend_stage
 from qr_cl.stages import blend_backward, blend_forward, blend_ref, render_fused, select
 
@@ -102,6 +102,32 @@ def test_pixel_subset_blend_equals_full_rows(plan):
     full = blend_forward(select(plan, "topk", 4), features, 16).get()
     sub = blend_forward(select(plan, "topk", 4, pixels), features, 16).get()
     np.testing.assert_array_equal(sub, full[pixels[:, 1] * plan.width + pixels[:, 0]])
+
+
+@pytest.mark.parametrize("shift", [0, 1, 4])
+def test_outputs_at_any_alignment(plan, shift):
+    """Blend and fused V-Render stream their outputs with non-temporal stores where a row's vectors
+    are aligned and store them plainly where not: images written into host memory starting 0, 4
+    or 16 bytes past a 64-byte boundary (used in place on CPU devices) are the same bytes."""
+    rng = np.random.default_rng(8)
+    features = device_rows(plan, rng.standard_normal((plan.splats.shape[0], 48)).astype(np.float32))
+    sel = select(plan, "quantile", 5)
+    want = blend_forward(sel, features, 48).get()
+    want_fused = render_fused(plan, features, 48)[0]
+    rt, rows = plan.runtime, (sel.n_rays, 48)
+
+    def misaligned(shape):
+        n = int(np.prod(shape))
+        base = np.zeros(n + 32, np.float32)
+        start = (-base.ctypes.data // 4) % 16 + shift        # 64-byte boundary, then shift floats
+        return base[start:start + n].reshape(shape)
+
+    host = misaligned(rows)
+    with shared_array(rt, host, "w") as out:
+        blend_forward(sel, features, 48, out=out)
+    np.testing.assert_array_equal(host, want)
+    host = misaligned((plan.height, plan.width, 48))
+    np.testing.assert_array_equal(render_fused(plan, features, 48, out=host)[0], want_fused)
 
 
 def test_shape_errors(plan):
