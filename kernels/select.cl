@@ -64,17 +64,17 @@ __kernel void select_quantile(BLOCK_ARGS, K_ROWS_ARGS) {
     const float stop = 1.f / (float)(K + 1);
     lanef T = (lanef)(1.f), TQ = (lanef)(1.f), bound = (lanef)(quantile_boundary(0, K));
     lanei k = (lanei)(0), n = (lanei)(0), done = row < 0;
-    for (int i = range.x; i < range.y && !all(done); i++) {
+    for (int i = range.x; i < range.y && !lanes_all(done); i++) {
         const int g = ids[i];
         const float8 s = splats[g];
         const lanef sig = block_sigma(s, px, py);
         if (!MAY_BLEND(s, sig)) continue;
         const lanef a = block_alpha(s, sig);
         const lanei use = (a > 0.f) & ~done;
-        if (!any(use)) continue;
+        if (!lanes_any(use)) continue;
         const lanef T_test = T * (1.f - a);
         const lanei cross = use & (T_test < bound);
-        if (any(cross)) TAKE_QUANTILES(cross, g, a, T_test, UNIFORM)
+        if (lanes_any(cross)) TAKE_QUANTILES(cross, g, a, T_test, UNIFORM)
         T = select(T, T_test, use);
         done |= use & (T_test < stop);
     }
@@ -143,7 +143,7 @@ __kernel void select_stratified(BLOCK_ARGS, K_ROWS_ARGS) {
         LANE(bound, l) = stratified_boundary(0, K, LANE(mu, l), LANE(sigma, l), LANE(t_end, l));
     VOLUME_WALK(range, px, py, row,                  /* pass 2: Algorithm 1, stratified boundaries */
         const lanei cross = use & (next_T < bound);
-        if (any(cross)) TAKE_QUANTILES(cross, g, a, next_T, STRATIFIED))
+        if (lanes_any(cross)) TAKE_QUANTILES(cross, g, a, next_T, STRATIFIED))
     finish_rows(row, n, T, TQ, K, out_w, count, t_walk, t_sel, t_rem);
 }
 
