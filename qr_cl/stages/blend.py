@@ -15,6 +15,7 @@ from ..runtime import channel_layout, check_buffer, device_empty, padded_vector,
 from .select import Selection
 
 OWNERS_PER_CORE = 2   # the CPU backward scatter's work-items per compute unit (measured: 1-8)
+FORWARD_GROUP_RAYS = 16   # CPU forward: a work-group blends this many neighbouring rays, all chunks
 
 
 def _check_rows(array: cla.Array, rows: int, cstride: int, name: str) -> None:
@@ -42,7 +43,11 @@ def blend_forward(sel: Selection, features: cla.Array, channels: int,
         return image
     size, full = sel.launch()
     plan = sel.plan
-    rt.launch("blend", (size, cstride // (vw * nv)), defines={"VW": vw, "NV": nv},
+    n_chunks, local = cstride // (vw * nv), None
+    if not rt.gpu_shaped and FORWARD_GROUP_RAYS * n_chunks <= rt.device.max_work_group_size:
+        # the group's rays share feature rows, which stay in cache over its chunks
+        size, local = -(-size // FORWARD_GROUP_RAYS) * FORWARD_GROUP_RAYS, (FORWARD_GROUP_RAYS, n_chunks)
+    rt.launch("blend", (size, n_chunks), defines={"VW": vw, "NV": nv}, local_size=local,
               offsets=sel.offsets, count=sel.count, sel_ids=sel.ids, sel_w=sel.weights,
               features=features, cstride=cstride, full=full, n_rays=sel.n_rays, width=plan.width,
               height=plan.height,
