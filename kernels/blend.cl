@@ -64,20 +64,33 @@ __kernel void blend_backward(const int n, __global const int *order,   /* [N] Ga
     for (int v = 0; v < NV; v++) VSTORE(acc[v], v, out);
 }
 
-/* Backward scatter: work-item m of n_owners owns the Gaussians [n m / n_owners, n (m + 1) / n_owners),
-   zeroes their rows of dF, then walks every ray in order and adds w dImage[p, :] to the rows of
-   the Gaussians it owns. Each owner reads all the entries' ids but only its own rows. */
-__kernel void blend_backward_scatter(const int n, const int n_owners, const int n_rays,
+/* Entries per bin of Gaussian ids (bin g >> bin_shift) of rays [c * rays_per, (c + 1) * rays_per),
+   counted by work-item c into its own row hist[c * n_bins ..] (no atomics): the host cuts the
+   backward scatter's owner ranges from them. */
+__kernel void entry_histogram(const int n_rays, const int rays_per, const int bin_shift, const int n_bins,
+                              __global const int *offsets, __global const int *count,
+                              __global const int *sel_ids, __global int *hist) {
+    const int c = get_global_id(0);
+    const int p1 = min(n_rays, (c + 1) * rays_per);
+    for (int p = c * rays_per; p < p1; p++)
+        for (int j = offsets[p]; j < offsets[p] + count[p]; j++)
+            hist[c * n_bins + (sel_ids[j] >> bin_shift)]++;
+}
+
+/* Backward scatter: work-item m owns the Gaussians [bounds[m], bounds[m + 1]). It walks every ray
+   in order and adds w dImage[p, :] to the rows of dF of the Gaussians it owns (the first entry
+   of a Gaussian writes 0 + w dImage[p, :], marking it in touched, zeroed by the host), then
+   zeroes the rows of its Gaussians without entries. Each owner reads all the entries' ids but
+   only its own entries' rows. */
+__kernel void blend_backward_scatter(const int n_owners, __global const int *bounds, const int n_rays,
                                      __global const int *offsets, __global const int *count,
                                      __global const int *sel_ids, __global const float *sel_w,
                                      __global const float *dimage,   /* [P, cstride] */
-                                     const int cstride, __global float *dfeatures) {   /* [N, cstride] */
+                                     const int cstride, __global uchar *touched,   /* [N] */
+                                     __global float *dfeatures) {   /* [N, cstride] */
     const int m = get_global_id(0);
     if (m >= n_owners) return;
-    const int g0 = (int)((long)n * m / n_owners), g1 = (int)((long)n * (m + 1) / n_owners);
-    const int n_vec = cstride / VW;
-    for (int g = g0; g < g1; g++)
-        for (int v = 0; v < n_vec; v++) VSTORE((vec_t)(0.f), v, dfeatures + (size_t)g * cstride);
+    const int g0 = bounds[m], g1 = bounds[m + 1], n_vec = cstride / VW;
     for (int p = 0; p < n_rays; p++) {
         __global const float *d = dimage + (size_t)p * cstride;
         for (int j = offsets[p]; j < offsets[p] + count[p]; j++) {
@@ -85,9 +98,16 @@ __kernel void blend_backward_scatter(const int n, const int n_owners, const int 
             if (g < g0 || g >= g1) continue;
             const float w = sel_w[j];
             __global float *out = dfeatures + (size_t)g * cstride;
-            for (int v = 0; v < n_vec; v++) VSTORE(VLOAD(v, out) + w * VLOAD(v, d), v, out);
+            if (touched[g])
+                for (int v = 0; v < n_vec; v++) VSTORE(VLOAD(v, out) + w * VLOAD(v, d), v, out);
+            else
+                for (int v = 0; v < n_vec; v++) VSTORE(0.f + w * VLOAD(v, d), v, out);
+            touched[g] = 1;
         }
     }
+    for (int g = g0; g < g1; g++)
+        if (!touched[g])
+            for (int v = 0; v < n_vec; v++) VSTREAM((vec_t)(0.f), v, dfeatures + (size_t)g * cstride);
 }
 
 /* ---- gradients w.r.t. the geometry: dL/dalpha per entry, then per Gaussian splat ---- */

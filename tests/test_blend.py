@@ -68,6 +68,24 @@ def test_backward_bytes_do_not_depend_on_the_owners(plan, monkeypatch, owners_pe
     assert np.abs(first).max() > 0
 
 
+def test_owner_bounds_split_the_entries_evenly(plan, monkeypatch):
+    """The scatter's owner ranges cover 0..N in order and hold about equal numbers of entries:
+    each within one histogram bin's entries of total / owners."""
+    monkeypatch.setattr(blend_stage, "OWNER_BINS", 64)
+    sel = select(plan, "quantile", 6)
+    h = sel.host()
+    ids = h["ids"][h["ids"] >= 0]
+    for owners in (1, 2, 5):
+        bounds = blend_stage.owner_bounds(sel, owners)
+        assert bounds[0] == 0 and bounds[-1] == sel.n_gaussians and len(bounds) == owners + 1
+        assert (np.diff(bounds) >= 0).all()
+        per_owner = np.histogram(ids, bins=bounds)[0]
+        shift = max(0, int(np.ceil(np.log2(sel.n_gaussians / 64))))
+        worst_bin = np.bincount(ids >> shift).max()
+        assert per_owner.sum() == len(ids)
+        assert np.abs(per_owner - len(ids) / owners).max() <= worst_bin
+
+
 def test_transpose_groups_entries_by_gaussian(plan):
     sel = select(plan, "quantile", 6)
     cursor, t_ray, t_w, t_entry, chunks = sel.transpose()

@@ -11,10 +11,11 @@ from __future__ import annotations
 import numpy as np
 import pyopencl.array as cla
 
-from ..runtime import channel_layout, check_buffer, device_empty, padded_vector, to_device
+from ..runtime import channel_layout, check_buffer, device_empty, device_zeros, padded_vector, to_device
 from .select import Selection
 
-OWNERS_PER_CORE = 2   # the CPU backward scatter's work-items per compute unit (measured: 1-8)
+OWNERS_PER_CORE = 1   # the CPU backward scatter's work-items per compute unit
+OWNER_BINS = 4096     # ... whose Gaussian ranges are cut from a histogram of this many bins
 FORWARD_GROUP_RAYS = 16   # CPU forward: a work-group blends this many neighbouring rays, all chunks
 
 
@@ -73,10 +74,11 @@ def blend_backward(sel: Selection, dimage: cla.Array, channels: int, out: cla.Ar
     dfeatures = device_empty(rt, (sel.n_gaussians, cstride), np.float32) if out is None else out
     _check_rows(dfeatures, sel.n_gaussians, cstride, "out")
     if not rt.gpu_shaped:
-        owners = max(1, min(sel.n_gaussians, OWNERS_PER_CORE * rt.device.max_compute_units))
-        rt.launch("blend_backward_scatter", owners, defines={"VW": vw, "NV": nv}, local_size=(1,),
-                  n=sel.n_gaussians, n_owners=owners, n_rays=sel.n_rays, offsets=sel.offsets,
-                  count=sel.count, sel_ids=sel.ids, sel_w=sel.weights, dimage=dimage, cstride=cstride,
+        owners = owner_bounds(sel, OWNERS_PER_CORE * rt.device.max_compute_units)
+        rt.launch("blend_backward_scatter", len(owners) - 1, defines={"VW": vw, "NV": nv}, local_size=(1,),
+                  n_owners=len(owners) - 1, bounds=to_device(rt, owners, np.int32), n_rays=sel.n_rays,
+                  offsets=sel.offsets, count=sel.count, sel_ids=sel.ids, sel_w=sel.weights, dimage=dimage,
+                  cstride=cstride, touched=device_zeros(rt, max(sel.n_gaussians, 1), np.uint8),
                   dfeatures=dfeatures)
         return dfeatures
     t = sel.transpose()
@@ -84,6 +86,24 @@ def blend_backward(sel: Selection, dimage: cla.Array, channels: int, out: cla.Ar
               n=sel.n_gaussians, order=sel.backward_order(), n_chunks=t.chunks, cursor=t.cursor, t_ray=t.ray,
               t_w=t.weight, dimage=dimage, cstride=cstride, dfeatures=dfeatures)
     return dfeatures
+
+
+def owner_bounds(sel: Selection, owners: int) -> np.ndarray:
+    """Cuts [owners + 1] int32 of the Gaussians 0..N into ranges holding about equal numbers of
+    ``sel``'s entries (the backward scatter's work-items; from a device histogram of the entries
+    over OWNER_BINS bins of ids, so a cut falls on a bin's edge). Always 0 first and N last."""
+    rt, n = sel.plan.runtime, sel.n_gaussians
+    shift = max(0, int(np.ceil(np.log2(max(n, 1) / OWNER_BINS))))
+    bins = (max(n, 1) - 1 >> shift) + 1
+    chunks = max(1, min(sel.n_rays, rt.device.max_compute_units * OWNERS_PER_CORE))
+    hist = device_zeros(rt, chunks * bins, np.int32)
+    if sel.n_rays:
+        rt.launch("entry_histogram", chunks, defines={"VW": 1, "NV": 1}, local_size=(1,), n_rays=sel.n_rays,
+                  rays_per=-(-sel.n_rays // chunks), bin_shift=shift, n_bins=bins, offsets=sel.offsets,
+                  count=sel.count, sel_ids=sel.ids, hist=hist)
+    cum = np.cumsum(hist.get().reshape(chunks, bins).sum(0))
+    cuts = np.searchsorted(cum, cum[-1] * np.arange(1, owners) / owners, side="right")
+    return np.concatenate([[0], np.minimum(cuts << shift, n), [n]]).astype(np.int32)
 
 
 def prepare_backward(sel: Selection) -> None:
