@@ -25,8 +25,11 @@ def test_report_has_every_stage_and_baseline(report_dir):
     for expected in [("projection", "-"), ("binning+sort", "-"), ("fused", "volume_fused"),
                      ("looped-3ch", "volume_fused"), ("blend-forward", "torch-embedding_bag"),
                      ("blend-forward", "numpy"), ("rasterization-forward", "volume"),
-                     ("rasterization-forward-backward", "quantile")]:
+                     ("rasterization-forward-backward", "quantile"), ("training-path", "quantile")]:
         assert expected in stages
+    train = [r for r in report["results"] if r["stage"] == "training-path"]
+    assert {r["scene"] for r in train} == {"synthetic-2k", "dense-room-5k"}
+    assert all(r["views"] == 4 and r["rays"] == 2048 for r in train)
     grads = [r for r in report["results"] if r["stage"] == "rasterization-forward-backward"]
     assert len(grads) == 2 and all(r["over_forward"] > 0 for r in grads)
     sizes = {(r["scene"], r["width"]) for r in report["results"]}
@@ -44,6 +47,7 @@ def test_summary_and_plots(report_dir):
     text = (report_dir / "summary.md").read_text()
     assert "## Q-Render (K=10, C=16)" in text and "looped 3-channel" in text and "embedding_bag" in text
     assert "## Complexity" in text and "## Gradients w.r.t. the Gaussians" in text
+    assert "training path: 4 x 2048 rays" in text and "## The renderer end to end" in text
     for name in ("time_vs_k.png", "time_vs_c.png", "roofline.png", "complexity.png"):
         assert (report_dir / name).stat().st_size > 5000
 

@@ -217,6 +217,26 @@ class Sweep:
         return self._row(scene, "end-to-end", sampler, k if sampler in ("quantile", "topk") else 0,
                          channels, timing, faults_per_call=warm_page_faults(call))
 
+    def training_path(self, scene: BenchScene, k: int, channels: int, views: int = 4, rays: int = 2048) -> dict:
+        """Time the renderer's part of a training step: ``views`` Q-Render K renders of ``rays``
+        random pixels each (``rasterize`` with ``pixels``, the scene's camera) of [N, channels]
+        features, forward and backward w.r.t. the features (loss: the images' sum of squares)."""
+        g, cam = scene.gaussians, scene.camera
+        feats = torch.from_numpy(np.random.default_rng(0).random((len(g), channels), dtype=np.float32))
+        feats.requires_grad_(True)
+        rng = np.random.default_rng(1)
+
+        def call():
+            feats.grad = None
+            images = [rasterize(g.means, g.quats, g.scales, g.opacities, feats, cam.viewmat, cam.K, cam.width,
+                                cam.height, sampler="quantile", k=k,
+                                pixels=rng.integers(0, (cam.width, cam.height), (rays, 2)))[0]
+                      for _ in range(views)]
+            torch.cat(images).square().sum().backward()
+        timing = measure(call, self.rounds)
+        return self._row(scene, "training-path", "quantile", k, channels, timing, views=views, rays=rays,
+                         faults_per_call=warm_page_faults(call))
+
     def gradients(self, scene: BenchScene, sampler: str, k: int) -> dict:
         """Time :func:`qr_cl.rasterization` of RGB (from the scene's SH) forward alone and forward +
         backward w.r.t. means, quats, scales, opacities and SH (loss: the image sum); the second
@@ -330,10 +350,10 @@ def run_sweep(mode: str, out: Path, data: Path | None = None) -> dict:
     main_res = cfg["resolutions"][0]
     n_jobs = 0
     for res, scenes in scenes_by_res.items():
-        per_scene = 2 + 3 * len(cfg["ks"]) * 3 + len(cfg["cs"]) * (1 + 3 * 3 + 3) if res == main_res else 2 + 4 * 3 + 4
+        per_scene = 3 + 3 * len(cfg["ks"]) * 3 + len(cfg["cs"]) * (1 + 3 * 3 + 3) if res == main_res else 2 + 4 * 3 + 4
         n_jobs += per_scene * (1 if quick else len(scenes))
     n_jobs += len(cfg["synthetic"]) * 8 + (len(cfg["layers"]) + len(cfg["layer_cs"])) * 4 * 2 + 6
-    n_jobs += 2 + 2 + 3 * len(SAMPLERS) * len(cfg["ks"]) + 2 * len(cfg["ks"]) + 1 + 4
+    n_jobs += 2 + 2 + 3 * len(SAMPLERS) * len(cfg["ks"]) + 2 * len(cfg["ks"]) + 2 + 4
     with tqdm(total=n_jobs, desc="qr-cl bench", unit="run") as bar:
         sweep = Sweep(cfg["rounds"], bar)
         sweep.limits = {"bandwidth_bytes_s": roofline.stream_bandwidth(rt, 64 if quick else 256),
@@ -355,6 +375,7 @@ def run_sweep(mode: str, out: Path, data: Path | None = None) -> dict:
                     sweep.looped_rgb(scene, plan, c, cfg["looped_rounds"])
                     sweep.torch_baselines(scene, plan, cfg["c_sweep_k"], c, cfg["numpy_rounds"])
                     sweep.end_to_end(scene, "volume_fused", 0, c)
+                    sweep.training_path(scene, cfg["c_sweep_k"], c)
                     for sampler in ("volume", "quantile"):
                         sweep.gradients(scene, sampler, cfg["ks"][0])
                 else:
@@ -372,6 +393,7 @@ def run_sweep(mode: str, out: Path, data: Path | None = None) -> dict:
             sweep.end_to_end(scene, "quantile", k, cfg["k_sweep_c"])
             sweep.end_to_end(scene, "stratified", k, cfg["k_sweep_c"])
         sweep.end_to_end(scene, "volume_fused", 0, cfg["k_sweep_c"])
+        sweep.training_path(scene, cfg["c_sweep_k"], cfg["k_sweep_c"])
         for n in cfg["synthetic"]:                       # scene size
             scene = synthetic_scene(n, *main_res)
             plan = sweep.plan(scene)
@@ -446,14 +468,16 @@ def _faults(row: dict) -> str:
 def _renderer_table(rows: list[dict]) -> list[str]:
     """Markdown lines of the renderer's headline figures per scene with end-to-end rows: the walk
     (fused V-Render at C=3), Q-Render end to end against the fused V-Render of the same run, end
-    to end over select + blend, the blend against the roofline and backward over forward."""
+    to end over select + blend, the blend against the roofline and the bare gather-blend, backward
+    over forward, and the training path (:meth:`Sweep.training_path`)."""
     scenes = {(r["scene"], r["width"], r["height"]) for r in rows if r["stage"] == "end-to-end"
               and r["sampler"] == "quantile"}
     if not scenes:
         return []
     lines = ["## The renderer end to end", "", "| scene | WxH | walk: fused C=3 | Q-Render K | C | Q end to end | "
              "fused V-Render end to end | fused / Q | Q end to end / (select + blend) | Q blend fwd / roofline | "
-             "Q blend bwd / fwd | page faults per warm Q render |", "| --- " * 12 + "|"]
+             "Q blend fwd / bare gather | Q blend bwd / fwd | page faults per warm Q render | "
+             "training path: 4 x 2048 rays, fwd + bwd |", "| --- " * 14 + "|"]
     for name, width, height in sorted(scenes):
         sc = dict(scene=name, width=width, height=height)
         walk = _find(rows, stage="fused", channels=3, **sc)
@@ -466,10 +490,11 @@ def _renderer_table(rows: list[dict]) -> list[str]:
             bwd = _find(rows, stage="blend-backward", sampler="quantile", k=k, channels=c, **sc)
             if not (fused and sel and fwd and bwd):
                 continue
+            train = _find(rows, stage="training-path", k=k, channels=c, **sc)
             lines.append(f"| {name} | {width}x{height} | {_ms(walk)} | {k} | {c} | {_ms(q)} | {_ms(fused)} | "
                          f"{fused['min_s'] / q['min_s']:.2f}x | {q['min_s'] / (sel['min_s'] + fwd['min_s']):.2f} | "
-                         f"{fwd['fraction_of_roofline']:.0%} | {bwd['min_s'] / fwd['min_s']:.2f} | "
-                         f"{_fault_count(q)} |")
+                         f"{fwd['fraction_of_roofline']:.0%} | {fwd['fraction_of_bare_gather']:.0%} | "
+                         f"{bwd['min_s'] / fwd['min_s']:.2f} | {_fault_count(q)} | {_ms(train)} |")
     return lines + [""]
 
 
