@@ -54,15 +54,20 @@ def test_forward_and_backward_equal_reference(plan, sampler, k, channels):
     assert np.abs(dF[np.setdiff1d(np.arange(n), h["ids"][valid])]).max(initial=0) == 0
 
 
-@pytest.mark.parametrize("owners_per_core", [1, 3, 1000])
-def test_backward_bytes_do_not_depend_on_the_owners(plan, monkeypatch, owners_per_core):
+@pytest.mark.parametrize("owners_per_core", [1, 3, 1000, "gather"])
+def test_backward_bytes_do_not_depend_on_the_kernel(plan, monkeypatch, owners_per_core):
     """The CPU scatter sums each Gaussian's entries in ray order whichever work-item owns it: any
-    number of owners (up to one per Gaussian) gives the bytes of the default, run after run."""
+    number of owners (up to one per Gaussian), and the gather over the transpose, give the bytes
+    of the default, run after run."""
     rng = np.random.default_rng(5)
     sel = select(plan, "volume", 1)
+    assert blend_stage.scatters(sel)              # a whole image has more rays than Gaussians
     dimage = device_rows(plan, rng.standard_normal((sel.n_rays, 64)).astype(np.float32))
     first = blend_backward(sel, dimage, 64).get()
-    monkeypatch.setattr(blend_stage, "OWNERS_PER_CORE", owners_per_core)
+    if owners_per_core == "gather":
+        monkeypatch.setattr(blend_stage, "scatters", lambda sel: False)
+    else:
+        monkeypatch.setattr(blend_stage, "OWNERS_PER_CORE", owners_per_core)
     second = blend_backward(sel, dimage, 64).get()
     assert first.tobytes() == second.tobytes()
     assert np.abs(first).max() > 0
