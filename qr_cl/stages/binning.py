@@ -20,6 +20,8 @@ from pyopencl.algorithm import RadixSort
 from ..runtime import Runtime, device_empty, device_zeros, exclusive_scan, host_empty, last_value, to_device
 from .project import tile_grid
 
+BIN_CHUNKS_PER_CORE = 4   # the CPU binning's work-items per compute unit
+
 
 @dataclass
 class RasterPlan:
@@ -138,7 +140,9 @@ def bin_and_sort(rt: Runtime, splats: cla.Array, rects: cla.Array, touched: cla.
                  width: int, height: int) -> tuple[cla.Array, cla.Array, int]:
     """Keys per (Gaussian, tile), sorted by tile then depth, from :func:`qr_cl.stages.project.project`.
 
-    Returns (ranges [tiles,2], ids [max(M,1)], M) for M keys.
+    Returns (ranges [tiles,2], ids [max(M,1)], M) for M keys. GPU-shaped runtimes sort the M keys
+    (:func:`sort_pairs`); CPU-shaped ones sort the N Gaussians by depth and then the pairs by tile
+    (:func:`_bin_counted`): the same ids.
     """
     n = touched.size
     tiles_x, tiles_y = tile_grid(width, height)
@@ -148,6 +152,8 @@ def bin_and_sort(rt: Runtime, splats: cla.Array, rects: cla.Array, touched: cla.
     m = last_value(offsets) + last_value(touched)
     if m == 0:
         return ranges, device_zeros(rt, 1, np.int32), 0
+    if not rt.gpu_shaped:
+        return _bin_counted(rt, splats, rects, touched, tiles_x, n_tiles, m)
     keys = device_empty(rt, m, np.uint64)
     values = device_empty(rt, m, np.int32)
     rt.launch("emit_keys", n, n=n, rects=rects, offsets=offsets, splats=splats, tiles_x=tiles_x,
@@ -156,3 +162,27 @@ def bin_and_sort(rt: Runtime, splats: cla.Array, rects: cla.Array, touched: cla.
     keys, ids = sort_pairs(rt, keys, values, key_bits)
     rt.launch("tile_ranges", m, m=m, keys=keys, ranges=ranges)
     return ranges, ids, m
+
+
+def _bin_counted(rt: Runtime, splats: cla.Array, rects: cla.Array, touched: cla.Array, tiles_x: int,
+                 n_tiles: int, m: int) -> tuple[cla.Array, cla.Array, int]:
+    """CPU-shaped binning: the touching Gaussians sorted by depth on the host (torch's stable sort
+    of N keys instead of M), then their M (Gaussian, tile) pairs by a stable counting sort by tile
+    (bin_count / bin_fill). Each tile's list is by depth, then index, as the key sort gives it.
+    Measured on the 300k-Gaussian dense room (3.7M pairs), projection included: 105 -> 39 ms."""
+    hit = np.flatnonzero(_get(touched) > 0)
+    depth_bits = _get(splats).reshape(-1, 8)[hit, 6].view(np.int32)   # positive floats: order kept
+    by_depth = torch.sort(torch.from_numpy(depth_bits), stable=True)[1].numpy()
+    order = to_device(rt, hit[by_depth], np.int32)
+    n, chunks = len(hit), max(1, min(len(hit), BIN_CHUNKS_PER_CORE * rt.device.max_compute_units))
+    args = dict(n=n, per=-(-n // chunks), n_chunks=chunks, order=order, rects=rects, tiles_x=tiles_x)
+    hist = device_zeros(rt, n_tiles * chunks, np.int32)
+    rt.launch("bin_count", chunks, local_size=(1,), **args, hist=hist)
+    counts = hist.get()
+    ends = np.cumsum(counts, dtype=np.int64)
+    ids = device_empty(rt, m, np.int32)
+    rt.launch("bin_fill", chunks, local_size=(1,), **args, cursor=to_device(rt, ends - counts, np.int32), ids=ids)
+    tile_ends = ends[chunks - 1::chunks]
+    tile_starts = tile_ends - counts.reshape(n_tiles, chunks).sum(1)
+    ranges = np.where((tile_ends > tile_starts)[:, None], np.stack([tile_starts, tile_ends], 1), 0)
+    return to_device(rt, ranges, np.int32), ids, m
