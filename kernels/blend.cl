@@ -64,19 +64,6 @@ __kernel void blend_backward(const int n, __global const int *order,   /* [N] Ga
     for (int v = 0; v < NV; v++) VSTORE(acc[v], v, out);
 }
 
-/* Entries per bin of Gaussian ids (bin g >> bin_shift) of rays [c * rays_per, (c + 1) * rays_per),
-   counted by work-item c into its own row hist[c * n_bins ..] (no atomics): the host cuts the
-   backward scatter's owner ranges from them. */
-__kernel void entry_histogram(const int n_rays, const int rays_per, const int bin_shift, const int n_bins,
-                              __global const int *offsets, __global const int *count,
-                              __global const int *sel_ids, __global int *hist) {
-    const int c = get_global_id(0);
-    const int p1 = min(n_rays, (c + 1) * rays_per);
-    for (int p = c * rays_per; p < p1; p++)
-        for (int j = offsets[p]; j < offsets[p] + count[p]; j++)
-            hist[c * n_bins + (sel_ids[j] >> bin_shift)]++;
-}
-
 /* Backward scatter: work-item m owns the Gaussians [bounds[m], bounds[m + 1]). It walks every ray
    in order and adds w dImage[p, :] to the rows of dF of the Gaussians it owns (the first entry
    of a Gaussian writes 0 + w dImage[p, :], marking it in touched, zeroed by the host), then

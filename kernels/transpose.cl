@@ -3,15 +3,17 @@
    histogram slots, no atomics, no barriers), with an exclusive scan between the two passes. */
 
 /* Transpose, counting pass: work-item c owns rays [c * rays_per, (c + 1) * rays_per) and counts
-   its entries per Gaussian into hist[g * n_chunks + c] (its own slots: no atomics). */
-__kernel void transpose_count(const int n_rays, const int rays_per, const int n_chunks,
+   its entries per bin of Gaussian ids b = g >> bin_shift into hist[b * n_chunks + c] (its own
+   slots: no atomics). bin_shift 0 counts per Gaussian (the transpose); wider bins give the
+   histogram from which blend.py cuts the backward scatter's owner ranges. */
+__kernel void transpose_count(const int n_rays, const int rays_per, const int n_chunks, const int bin_shift,
                               __global const int *offsets, __global const int *count,
                               __global const int *sel_ids, __global int *hist) {
     const int c = get_global_id(0);
     const int p1 = min(n_rays, (c + 1) * rays_per);
     for (int p = c * rays_per; p < p1; p++)
         for (int j = offsets[p]; j < offsets[p] + count[p]; j++)
-            hist[sel_ids[j] * n_chunks + c]++;
+            hist[(sel_ids[j] >> bin_shift) * n_chunks + c]++;
 }
 
 /* Transpose, fill pass: after an exclusive scan of hist (Gaussian-major, then chunk), cursor

@@ -95,17 +95,18 @@ def blend_backward(sel: Selection, dimage: cla.Array, channels: int, out: cla.Ar
 def owner_bounds(sel: Selection, owners: int) -> np.ndarray:
     """Cuts [owners + 1] int32 of the Gaussians 0..N into ranges holding about equal numbers of
     ``sel``'s entries (the backward scatter's work-items; from a device histogram of the entries
-    over OWNER_BINS bins of ids, so a cut falls on a bin's edge). Always 0 first and N last."""
+    over OWNER_BINS bins of ids by transpose.cl's counting pass, so a cut falls on a bin's edge).
+    Always 0 first and N last."""
     rt, n = sel.plan.runtime, sel.n_gaussians
     shift = max(0, int(np.ceil(np.log2(max(n, 1) / OWNER_BINS))))
     bins = (max(n, 1) - 1 >> shift) + 1
     chunks = max(1, min(sel.n_rays, rt.device.max_compute_units * OWNERS_PER_CORE))
     hist = device_zeros(rt, chunks * bins, np.int32)
     if sel.n_rays:
-        rt.launch("entry_histogram", chunks, defines={"VW": 1, "NV": 1}, local_size=(1,), n_rays=sel.n_rays,
-                  rays_per=-(-sel.n_rays // chunks), bin_shift=shift, n_bins=bins, offsets=sel.offsets,
-                  count=sel.count, sel_ids=sel.ids, hist=hist)
-    cum = np.cumsum(hist.get().reshape(chunks, bins).sum(0))
+        rt.launch("transpose_count", chunks, local_size=(1,), n_rays=sel.n_rays, rays_per=-(-sel.n_rays // chunks),
+                  n_chunks=chunks, bin_shift=shift, offsets=sel.offsets, count=sel.count, sel_ids=sel.ids,
+                  hist=hist)
+    cum = np.cumsum(hist.get().reshape(bins, chunks).sum(1))
     cuts = np.searchsorted(cum, cum[-1] * np.arange(1, owners) / owners, side="right")
     return np.concatenate([[0], np.minimum(cuts << shift, n), [n]]).astype(np.int32)
 

@@ -168,7 +168,7 @@ def _transpose_counted(sel: Selection) -> Transpose:
     if n_rays:
         args = dict(n_rays=n_rays, rays_per=rays_per, n_chunks=chunks, offsets=sel.offsets,
                     count=sel.count, sel_ids=sel.ids)
-        rt.launch("transpose_count", chunks, **args, hist=cursor)
+        rt.launch("transpose_count", chunks, **args, bin_shift=0, hist=cursor)
         exclusive_scan(rt, cursor)
         rt.launch("transpose_fill", chunks, **args, sel_w=sel.weights, cursor=cursor,
                   t_ray=t_ray, t_w=t_w, t_entry=t_entry)
