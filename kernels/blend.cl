@@ -20,6 +20,7 @@ __kernel void blend(__global const int *offsets, __global const int *count,
                     const int cstride, const int full, const int n_rays, const int width, const int height,
                     const int tiles_x, __global const float *background,   /* [cstride] */
                     __global const float *t_rem, const int use_bg,
+                    const int stream,                      /* write the image with VSTREAM */
                     __global float *image) {               /* [P, cstride] */
     int p;
     if (!ray_row(get_global_id(0), full, n_rays, width, height, tiles_x, &p)) return;
@@ -36,7 +37,8 @@ __kernel void blend(__global const int *offsets, __global const int *count,
     const float tb = use_bg ? t_rem[p] : 0.f;
     for (int v = 0; v < NV; v++) {
         const vec_t bg = use_bg ? VLOAD(v, background + c0) : (vec_t)(0.f);
-        VSTREAM(acc[v] + tb * bg, v, out);
+        if (stream) VSTREAM(acc[v] + tb * bg, v, out);
+        else VSTORE(acc[v] + tb * bg, v, out);
     }
 }
 

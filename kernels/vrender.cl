@@ -47,6 +47,7 @@ __kernel void vrender(__global const int2 *ranges,     /* [tiles] [start, end) i
                       const int cstride, const int width, const int height, const int tiles_x,
                       __global const float *background,  /* [cstride], used when use_bg */
                       const int use_bg,
+                      const int stream,                /* write the image's rows last with VSTREAM */
                       __global float *image,           /* [H*W, cstride] */
                       __global float *alpha,           /* [H*W] 1 - T */
                       __global float *depth) {         /* [H*W] expected depth */
@@ -68,7 +69,7 @@ __kernel void vrender(__global const int2 *ranges,     /* [tiles] [start, end) i
             count = 0;
             init = 0;
         })
-    blend_batch(image, features, cstride, batch_id, batch_w, count, row, init, 1,
+    blend_batch(image, features, cstride, batch_id, batch_w, count, row, init, stream,
                 use_bg ? T : (lanef)(0.f), background);
     const lanef d = select((lanef)(0.f), depth_sum / (1.f - T), T < 1.f);
     for (int l = 0; l < TILE; l++) {

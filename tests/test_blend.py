@@ -8,6 +8,7 @@ import pytest
 from qr_cl.render import rasterize_plan
 from qr_cl.runtime import channel_layout, padded_rows, shared_array
 from qr_cl.stages import blend as blend_stage
+from qr_cl.stages import vrender as vrender_stage
 from qr_cl.stages import blend_backward, blend_forward, blend_ref, render_fused, select
 
 RTOL = 1e-5
@@ -128,16 +129,19 @@ def test_pixel_subset_blend_equals_full_rows(plan):
 
 
 @pytest.mark.parametrize("shift", [0, 1, 4])
-def test_outputs_at_any_alignment(plan, shift):
-    """Blend and fused V-Render stream their outputs with non-temporal stores where a row's vectors
-    are aligned and store them plainly where not: images written into host memory starting 0, 4
-    or 16 bytes past a 64-byte boundary (used in place on CPU devices) are the same bytes."""
+def test_outputs_at_any_alignment(plan, shift, monkeypatch):
+    """Blend and fused V-Render stream large images with non-temporal stores where a row's vectors
+    are aligned and store them plainly where not (here every image streams): images written into
+    host memory starting 0, 4 or 16 bytes past a 64-byte boundary (used in place on CPU devices)
+    are the bytes of plainly stored ones."""
     rng = np.random.default_rng(8)
     features = device_rows(plan, rng.standard_normal((plan.splats.shape[0], 48)).astype(np.float32))
     sel = select(plan, "quantile", 5)
     want = blend_forward(sel, features, 48).get()
     want_fused = render_fused(plan, features, 48)[0]
     rt, rows = plan.runtime, (sel.n_rays, 48)
+    monkeypatch.setattr(blend_stage, "STREAM_MIN_BYTES", 0)
+    monkeypatch.setattr(vrender_stage, "STREAM_MIN_BYTES", 0)
 
     def misaligned(shape):
         n = int(np.prod(shape))

@@ -12,6 +12,9 @@ ALPHA_MIN = np.float32(1) / np.float32(255)   # Gaussians with a smaller alpha a
 ALPHA_MAX = np.float32(0.99)       # alpha is clamped here
 T_MIN = np.float32(1e-4)           # V-Render stops before T would drop to this
 MAX_CHANNELS = 2048                # feature channels a render supports (1..MAX_CHANNELS)
+#: Images of at least this many bytes are written with non-temporal stores (VSTREAM in
+#: kernels/common.h); smaller ones, e.g. a training step's rays, are read right after and stay cached.
+STREAM_MIN_BYTES = 64 << 20
 
 #: Samplers of the selection stage (``qr_cl.stages.select``): which Gaussians a ray blends.
 SAMPLERS = ("volume", "quantile", "topk", "stratified")

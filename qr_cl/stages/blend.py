@@ -11,12 +11,13 @@ from __future__ import annotations
 import numpy as np
 import pyopencl.array as cla
 
-from ..runtime import channel_layout, check_buffer, device_empty, device_zeros, padded_vector, to_device
+from ..runtime import (STREAM_MIN_BYTES, channel_layout, check_buffer, device_empty, device_zeros, padded_vector,
+                       to_device)
 from .select import Selection
 
 OWNERS_PER_CORE = 1   # the CPU backward scatter's work-items per compute unit
 OWNER_BINS = 4096     # ... whose Gaussian ranges are cut from a histogram of this many bins
-FORWARD_GROUP_RAYS = 16   # CPU gathers: a work-group takes this many neighbouring rows, all chunks
+FORWARD_GROUP_RAYS = 16   # CPU forward, whole images: a work-group blends a tile row, all chunks
 
 
 def _check_rows(array: cla.Array, rows: int, cstride: int, name: str) -> None:
@@ -45,15 +46,16 @@ def blend_forward(sel: Selection, features: cla.Array, channels: int,
     size, full = sel.launch()
     plan = sel.plan
     n_chunks, local = cstride // (vw * nv), None
-    if not rt.gpu_shaped and FORWARD_GROUP_RAYS * n_chunks <= rt.device.max_work_group_size:
-        # the group's rays share feature rows, which stay in cache over its chunks
+    if not rt.gpu_shaped and full and FORWARD_GROUP_RAYS * n_chunks <= rt.device.max_work_group_size:
+        # the group's rays (a tile row) share feature rows, which stay in cache over its chunks
         size, local = -(-size // FORWARD_GROUP_RAYS) * FORWARD_GROUP_RAYS, (FORWARD_GROUP_RAYS, n_chunks)
     rt.launch("blend", (size, n_chunks), defines={"VW": vw, "NV": nv}, local_size=local,
               offsets=sel.offsets, count=sel.count, sel_ids=sel.ids, sel_w=sel.weights,
               features=features, cstride=cstride, full=full, n_rays=sel.n_rays, width=plan.width,
               height=plan.height,
               tiles_x=plan.tiles_x, background=to_device(rt, padded_vector(background, channels, cstride)),
-              t_rem=sel.t_rem, use_bg=background is not None, image=image)
+              t_rem=sel.t_rem, use_bg=background is not None, stream=int(image.nbytes >= STREAM_MIN_BYTES),
+              image=image)
     return image
 
 
@@ -81,12 +83,8 @@ def blend_backward(sel: Selection, dimage: cla.Array, channels: int, out: cla.Ar
                   cstride=cstride, touched=device_zeros(rt, max(sel.n_gaussians, 1), np.uint8),
                   dfeatures=dfeatures)
         return dfeatures
-    t, n_chunks = sel.transpose(), cstride // (vw * nv)
-    size, local = sel.n_gaussians, None
-    if not rt.gpu_shaped and FORWARD_GROUP_RAYS * n_chunks <= rt.device.max_work_group_size:
-        # as the forward's groups: neighbouring Gaussians share dImage rows, kept over the chunks
-        size, local = -(-size // FORWARD_GROUP_RAYS) * FORWARD_GROUP_RAYS, (FORWARD_GROUP_RAYS, n_chunks)
-    rt.launch("blend_backward", (size, n_chunks), defines={"VW": vw, "NV": nv}, local_size=local,
+    t = sel.transpose()
+    rt.launch("blend_backward", (sel.n_gaussians, cstride // (vw * nv)), defines={"VW": vw, "NV": nv},
               n=sel.n_gaussians, order=sel.backward_order(), n_chunks=t.chunks, cursor=t.cursor, t_ray=t.ray,
               t_w=t.weight, dimage=dimage, cstride=cstride, dfeatures=dfeatures)
     return dfeatures
