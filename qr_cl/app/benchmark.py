@@ -350,7 +350,7 @@ def run_sweep(mode: str, out: Path, data: Path | None = None) -> dict:
     main_res = cfg["resolutions"][0]
     n_jobs = 0
     for res, scenes in scenes_by_res.items():
-        per_scene = 3 + 3 * len(cfg["ks"]) * 3 + len(cfg["cs"]) * (1 + 3 * 3 + 3) if res == main_res else 2 + 4 * 3 + 4
+        per_scene = 2 + len(cfg["ks"]) + 3 * len(cfg["ks"]) * 3 + len(cfg["cs"]) * (1 + 3 * 3 + 3) if res == main_res else 2 + 4 * 3 + 4
         n_jobs += per_scene * (1 if quick else len(scenes))
     n_jobs += len(cfg["synthetic"]) * 8 + (len(cfg["layers"]) + len(cfg["layer_cs"])) * 4 * 2 + 6
     n_jobs += 2 + 2 + 3 * len(SAMPLERS) * len(cfg["ks"]) + 2 * len(cfg["ks"]) + 2 + 4
@@ -375,6 +375,9 @@ def run_sweep(mode: str, out: Path, data: Path | None = None) -> dict:
                     sweep.looped_rgb(scene, plan, c, cfg["looped_rounds"])
                     sweep.torch_baselines(scene, plan, cfg["c_sweep_k"], c, cfg["numpy_rounds"])
                     sweep.end_to_end(scene, "volume_fused", 0, c)
+                    for k in cfg["ks"]:
+                        if k != cfg["c_sweep_k"]:
+                            sweep.end_to_end(scene, "quantile", k, c)
                     sweep.training_path(scene, cfg["c_sweep_k"], c)
                     for sampler in ("volume", "quantile"):
                         sweep.gradients(scene, sampler, cfg["ks"][0])
