@@ -7,9 +7,9 @@
    in vrender.cl. The forward runs one work-item per (row, channel chunk of NV vectors of VW
    floats). The backward sums each Gaussian's entries in one fixed order, by ray then by position
    in the ray, without atomics, so its result is bitwise reproducible; two kernels give the same
-   bytes: a gather over the selection transposed by transpose.cl (GPU shapes: many short
-   work-items) and a scatter by a few work-items that own ranges of Gaussians (CPU shapes: no
-   transpose, and every dImage row is read whole). */
+   bytes: a gather over the selection transposed by transpose.cl (many short work-items: GPU
+   shapes, and CPU ones for pixel subsets transposed ahead) and a scatter by a few work-items that
+   own ranges of Gaussians (CPU shapes otherwise: no transpose, every dImage row read whole). */
 #include "common.h"
 
 /* Forward. Rays as in select.cl (full image tile-major, or a pixel subset); entries of row p

@@ -350,7 +350,8 @@ def run_sweep(mode: str, out: Path, data: Path | None = None) -> dict:
     main_res = cfg["resolutions"][0]
     n_jobs = 0
     for res, scenes in scenes_by_res.items():
-        per_scene = 2 + len(cfg["ks"]) + 3 * len(cfg["ks"]) * 3 + len(cfg["cs"]) * (1 + 3 * 3 + 3) if res == main_res else 2 + 4 * 3 + 4
+        per_scene = (2 + len(cfg["ks"]) + 3 * len(cfg["ks"]) * 3 + len(cfg["cs"]) * (1 + 3 * 3 + 3)
+                     if res == main_res else 2 + 4 * 3 + 4)
         n_jobs += per_scene * (1 if quick else len(scenes))
     n_jobs += len(cfg["synthetic"]) * 8 + (len(cfg["layers"]) + len(cfg["layer_cs"])) * 4 * 2 + 6
     n_jobs += 2 + 2 + 3 * len(SAMPLERS) * len(cfg["ks"]) + 2 * len(cfg["ks"]) + 2 + 4
