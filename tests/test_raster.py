@@ -162,3 +162,18 @@ def test_real_scenes_match_reference(request, scene, channels):
                           cam.width, cam.height)
     differing = (np.abs(img - full).max(-1) > 1e-4).mean()
     assert differing < 1e-3, f"{differing:.2%} of pixels differ from the float64 pipeline"
+
+
+def test_render_meta_is_the_plan_meta_copied_on_first_access(random_scene):
+    m, q, s, o, v, K, w, h = random_scene
+    features = np.random.default_rng(3).random((len(m), 5), dtype=np.float32)
+    _, _, meta = qr_cl.rasterize(m, q, s, o, features, v, K, w, h, sampler="quantile", k=4)
+    assert meta._host is None                         # nothing copied before an entry is read
+    want = meta["selection"].plan.meta()
+    assert set(meta) == set(want) | {"selection"} and len(meta) == len(want) + 1
+    for key, value in want.items():
+        np.testing.assert_array_equal(meta[key], value)
+    with pytest.raises(KeyError):
+        meta["depth"]
+    _, _, fused_meta = qr_cl.render_volume_fused(m, q, s, o, features, v, K, w, h)
+    assert fused_meta["depth"].shape == (h, w, 1) and set(fused_meta) == set(want) | {"depth"}

@@ -11,7 +11,7 @@ import torch
 
 from ..runtime import (BufferLimitError, Runtime, channel_layout, check_buffer, check_channels, device_rows,
                        host_empty, runtime, to_device, trim_device_pool)
-from ..stages.binning import RasterPlan
+from ..stages.binning import RasterPlan, RenderMeta
 from ..stages.select import check_pixels, check_sampler, select
 from ..stages.sh import sh_colors
 from ..stages.vrender import render_fused
@@ -150,8 +150,9 @@ def rasterize(means, quats, scales, opacities, features, viewmat, K, width: int,
     Returns:
         render [H,W,C] (or [P,C] for ``pixels``) float32, alpha [H,W,1] (or [P,1]): 1 - the
         transmittance where the ray's walk stopped (for quantile the walk stops once T < 1/(K+1)),
-        and a meta dict with means2d [N,2] (px), conics [N,3], depths [N] (camera z), radii [N]
-        int32 (0 = culled), opacities [N], tile_ranges [tiles,2], flatten_ids, n_keys and (for
+        and a meta mapping (a :class:`qr_cl.stages.binning.RenderMeta`: host copies made on first
+        access; a dict for no Gaussians) with means2d [N,2] (px), conics [N,3], depths [N] (camera
+        z), radii [N] int32 (0 = culled), opacities [N], tile_ranges [tiles,2], flatten_ids, n_keys and (for
         N >= 1) the ``selection`` used (:class:`qr_cl.stages.select.Selection`; a list of them,
         one per set of rays, when the render was split to fit the device's buffers).
 
@@ -201,7 +202,7 @@ def rasterize(means, quats, scales, opacities, features, viewmat, K, width: int,
     sels = [sel for sel, _, _ in parts]
     render = torch.cat([r for _, r, _ in parts]) if len(parts) > 1 else parts[0][1]
     alpha = torch.from_numpy(parts[0][2] if len(parts) == 1 else np.concatenate([a for _, _, a in parts]))
-    meta = {**sels[0].plan.meta(), "selection": sels[0] if len(sels) == 1 else sels}
+    meta = RenderMeta(sels[0].plan, selection=sels[0] if len(sels) == 1 else sels)
     if pixels is None:
         render, alpha = render.reshape(height, width, scene.channels), alpha.reshape(height, width, 1)
     trim_device_pool(rt)
@@ -235,8 +236,8 @@ def render_volume_fused(means, quats, scales, opacities, features, viewmat, K, w
     """V-Render of a whole image in one fused kernel (no stored selection, no gradients): the
     same weights and summation order as ``rasterize(..., sampler="volume")``, the same image.
 
-    Arguments as :func:`rasterize`. Returns image [H,W,C], alpha [H,W,1] (1 - T) and a meta dict
-    with the plan's keys (means2d, conics, depths, radii, opacities, tile_ranges, flatten_ids,
+    Arguments as :func:`rasterize`. Returns image [H,W,C], alpha [H,W,1] (1 - T) and a meta mapping
+    (as :func:`rasterize`'s) with the plan's keys (means2d, conics, depths, radii, opacities, tile_ranges, flatten_ids,
     n_keys) and ``depth`` [H,W,1], the expected depth (camera z; 0 where nothing was hit).
     """
     scene = _Scene(means, quats, scales, opacities, features, viewmat, K, sh_degree, background)
@@ -252,4 +253,4 @@ def render_volume_fused(means, quats, scales, opacities, features, viewmat, K, w
     with device_rows(plan.runtime, feats, cstride) as rows:
         image, alpha, depth = render_fused(plan, rows, scene.channels, bg, out=host_empty((height, width, cstride)))
     trim_device_pool(plan.runtime)
-    return torch.from_numpy(image), torch.from_numpy(alpha), {**plan.meta(), "depth": depth}
+    return torch.from_numpy(image), torch.from_numpy(alpha), RenderMeta(plan, depth=depth)
