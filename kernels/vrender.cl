@@ -11,11 +11,11 @@
 #define BATCH 32
 
 /* For each lane l with row[l] >= 0: out_l[c] = (init ? 0 : out_l[c]) + sum_j w[j]_l features[id[j], c]
-   + bg_scale_l * background[c], out_l the lane's row of image; last: the final write of the rows
-   (streamed, VSTREAM). */
+   + bg_scale_l * background[c], out_l the lane's row of image; written with VSTREAM when stream
+   (the rows' final write, of a large image). */
 static inline void blend_batch(__global float *image, __global const float *features, const int cstride,
                                const int *id, const lanef *w, const int count, const lanei row,
-                               const int init, const int last, const lanef bg_scale,
+                               const int init, const int stream, const lanef bg_scale,
                                __global const float *background) {
     for (int l = 0; l < TILE; l++) {
         if (LANE_I(row, l) < 0) continue;
@@ -32,7 +32,7 @@ static inline void blend_batch(__global float *image, __global const float *feat
             }
             if (bg != 0.f)
                 for (int v = 0; v < NV; v++) acc[v] += bg * VLOAD(v, background + c0);
-            if (last)
+            if (stream)
                 for (int v = 0; v < NV; v++) VSTREAM(acc[v], v, out + c0);
             else
                 for (int v = 0; v < NV; v++) VSTORE(acc[v], v, out + c0);

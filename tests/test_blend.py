@@ -6,9 +6,8 @@ import pyopencl.array as cla
 import pytest
 
 from qr_cl.render import rasterize_plan
-from qr_cl.runtime import channel_layout, padded_rows, shared_array
+from qr_cl.runtime import channel_layout, memory, padded_rows, shared_array
 from qr_cl.stages import blend as blend_stage
-from qr_cl.stages import vrender as vrender_stage
 from qr_cl.stages import blend_backward, blend_forward, blend_ref, render_fused, select
 
 RTOL = 1e-5
@@ -140,8 +139,7 @@ def test_outputs_at_any_alignment(plan, shift, monkeypatch):
     want = blend_forward(sel, features, 48).get()
     want_fused = render_fused(plan, features, 48)[0]
     rt, rows = plan.runtime, (sel.n_rays, 48)
-    monkeypatch.setattr(blend_stage, "STREAM_MIN_BYTES", 0)
-    monkeypatch.setattr(vrender_stage, "STREAM_MIN_BYTES", 0)
+    monkeypatch.setattr(memory, "STREAM_MIN_BYTES", 0)
 
     def misaligned(shape):
         n = int(np.prod(shape))

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pyopencl.array as cla
 
-from ..runtime import STREAM_MIN_BYTES, Runtime, channel_layout
+from ..runtime import Runtime, channel_layout, streamed
 from .timing import measure
 
 FMA_ITERS = 4096
@@ -57,7 +57,6 @@ def bare_gather_blend(rt: Runtime, rays: int, k: int, channels: int, n_rows: int
         rt.launch("blend", (rays, cstride // (vw * nv)), defines={"VW": vw, "NV": nv},
                   offsets=offsets, count=count, sel_ids=ids, sel_w=weights, features=features,
                   cstride=cstride, full=0, n_rays=rays, width=0, height=0, tiles_x=1, background=unused,
-                  t_rem=unused, use_bg=0,
-                  stream=int(image.nbytes >= STREAM_MIN_BYTES), image=image)
+                  t_rem=unused, use_bg=0, stream=streamed(image.nbytes), image=image)
         rt.queue.finish()
     return measure(run, rounds)["min_s"]

@@ -40,8 +40,8 @@ class BlendFunction(torch.autograd.Function):
     output still uses; [P, cstride] with a [P, C] view returned when C < cstride); backward
     likewise reads dImage in place and writes dF straight into the returned gradient. On devices
     that do not share host memory the same calls copy through pooled device buffers. The
-    backward is :func:`blend_backward` (deterministic: a fixed sum order per Gaussian); the background gets its gradient
-    sum_p t_rem[p] dImage[p]. The selection gets none.
+    backward is :func:`blend_backward` (deterministic: a fixed sum order per Gaussian); the
+    background gets its gradient sum_p t_rem[p] dImage[p]. The selection gets none.
     """
 
     @staticmethod

@@ -47,7 +47,7 @@ import pyopencl as cl
 import pyopencl.array as cla
 from pyopencl.scan import ExclusiveScanKernel
 
-from .constants import MAX_CHANNELS
+from .constants import MAX_CHANNELS, STREAM_MIN_BYTES
 from .device import Runtime
 
 
@@ -95,6 +95,12 @@ def padded_rows(features: np.ndarray, cstride: int) -> np.ndarray:
     out = np.zeros((features.shape[0], cstride), np.float32)
     out[:, :features.shape[1]] = features
     return out
+
+
+def streamed(nbytes: int) -> int:
+    """The ``stream`` argument of the kernels that write an output of ``nbytes`` bytes: 1 (write it
+    with non-temporal stores, VSTREAM in kernels/common.h) from STREAM_MIN_BYTES, else 0."""
+    return int(nbytes >= STREAM_MIN_BYTES)
 
 
 def padded_vector(values, channels: int, cstride: int) -> np.ndarray:

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pyopencl.array as cla
 
-from ..runtime import (STREAM_MIN_BYTES, channel_layout, check_buffer, device_empty, device_zeros, padded_vector,
+from ..runtime import (channel_layout, check_buffer, device_empty, device_zeros, padded_vector, streamed,
                        to_device)
 from .select import Selection
 
@@ -54,7 +54,7 @@ def blend_forward(sel: Selection, features: cla.Array, channels: int,
               features=features, cstride=cstride, full=full, n_rays=sel.n_rays, width=plan.width,
               height=plan.height,
               tiles_x=plan.tiles_x, background=to_device(rt, padded_vector(background, channels, cstride)),
-              t_rem=sel.t_rem, use_bg=background is not None, stream=int(image.nbytes >= STREAM_MIN_BYTES),
+              t_rem=sel.t_rem, use_bg=background is not None, stream=streamed(image.nbytes),
               image=image)
     return image
 
@@ -98,7 +98,7 @@ def owner_bounds(sel: Selection, owners: int) -> np.ndarray:
     rt, n = sel.plan.runtime, sel.n_gaussians
     shift = max(0, int(np.ceil(np.log2(max(n, 1) / OWNER_BINS))))
     bins = (max(n, 1) - 1 >> shift) + 1
-    chunks = max(1, min(sel.n_rays, rt.device.max_compute_units * OWNERS_PER_CORE))
+    chunks = max(1, min(sel.n_rays, owners))
     hist = device_zeros(rt, chunks * bins, np.int32)
     if sel.n_rays:
         rt.launch("transpose_count", chunks, local_size=(1,), n_rays=sel.n_rays, rays_per=-(-sel.n_rays // chunks),

@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pyopencl.array as cla
 
-from ..runtime import (STREAM_MIN_BYTES, TILE, channel_layout, check_buffer, device_empty, host_empty, host_output,
-                       padded_vector, to_device)
+from ..runtime import (TILE, channel_layout, check_buffer, device_empty, host_empty, host_output, padded_vector,
+                       streamed, to_device)
 from .binning import RasterPlan
 from .select import BLOCK_GROUP
 
@@ -40,7 +40,7 @@ def render_fused(plan: RasterPlan, features: cla.Array, channels: int,
                   local_size=BLOCK_GROUP, ranges=plan.ranges, ids=plan.ids, splats=plan.splats, features=features,
                   cstride=cstride, width=w, height=h, tiles_x=plan.tiles_x,
                   background=to_device(rt, padded_vector(background, channels, cstride)),
-                  use_bg=background is not None, stream=int(image.nbytes >= STREAM_MIN_BYTES),
+                  use_bg=background is not None, stream=streamed(image.nbytes),
                   image=image_buf, alpha=alpha, depth=depth)
     return (image[:, :, :channels], alpha.get(ary=host_empty(h * w)).reshape(h, w, 1),
             depth.get(ary=host_empty(h * w)).reshape(h, w, 1))
