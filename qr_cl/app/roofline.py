@@ -6,6 +6,7 @@ import numpy as np
 import pyopencl.array as cla
 
 from ..runtime import Runtime, channel_layout, streamed
+from ..stages.blend import work_groups
 from .timing import measure
 
 FMA_ITERS = 4096
@@ -53,8 +54,10 @@ def bare_gather_blend(rt: Runtime, rays: int, k: int, channels: int, n_rows: int
     image = cla.empty(rt.queue, (rays, cstride), np.float32)
     unused = cla.zeros(rt.queue, max(rays, cstride), np.float32)   # background and t_rem (no bg)
 
+    size, local = work_groups(rt, rays, cstride // (vw * nv))
+
     def run():
-        rt.launch("blend", (rays, cstride // (vw * nv)), defines={"VW": vw, "NV": nv},
+        rt.launch("blend", (size, cstride // (vw * nv)), defines={"VW": vw, "NV": nv}, local_size=local,
                   offsets=offsets, count=count, sel_ids=ids, sel_w=weights, features=features,
                   cstride=cstride, full=0, n_rays=rays, width=0, height=0, tiles_x=1, background=unused,
                   t_rem=unused, use_bg=0, stream=streamed(image.nbytes), image=image)

@@ -11,19 +11,29 @@ from __future__ import annotations
 import numpy as np
 import pyopencl.array as cla
 
-from ..runtime import (channel_layout, check_buffer, device_empty, device_zeros, padded_vector, streamed,
-                       to_device)
+from ..runtime import (Runtime, channel_layout, check_buffer, device_empty, device_zeros, padded_vector,
+                       streamed, to_device)
 from .select import Selection
 
 OWNERS_PER_CORE = 1   # the CPU backward scatter's work-items per compute unit
 OWNER_BINS = 4096     # ... whose Gaussian ranges are cut from a histogram of this many bins
-FORWARD_GROUP_RAYS = 16   # CPU forward, whole images: a work-group blends a tile row, all chunks
+CPU_GROUP_ROWS = 16   # CPU shapes: a blend work-group takes 16 rows (rays, or dF rows) x all chunks
 
 
 def _check_rows(array: cla.Array, rows: int, cstride: int, name: str) -> None:
     if array.shape != (rows, cstride) or array.dtype != np.float32:
         raise ValueError(f"{name} must be float32 [{rows}, {cstride}] on the device, got "
                          f"{array.dtype} {array.shape}")
+
+
+def work_groups(rt: Runtime, rows: int, n_chunks: int) -> tuple[int, tuple[int, int] | None]:
+    """(global rows, local size) of a blend kernel over ``rows`` x ``n_chunks`` work-items: on CPU
+    shapes work-groups of CPU_GROUP_ROWS rows x all chunks (rows padded; the kernels return past
+    their count), so that PoCL keeps at most that many work-items' accumulators (up to 2 KB each)
+    on a thread's stack; GPU shapes (or too large groups) leave it to the runtime."""
+    if rt.gpu_shaped or CPU_GROUP_ROWS * n_chunks > rt.device.max_work_group_size:
+        return rows, None
+    return -(-rows // CPU_GROUP_ROWS) * CPU_GROUP_ROWS, (CPU_GROUP_ROWS, n_chunks)
 
 
 def blend_forward(sel: Selection, features: cla.Array, channels: int,
@@ -45,10 +55,10 @@ def blend_forward(sel: Selection, features: cla.Array, channels: int,
         return image
     size, full = sel.launch()
     plan = sel.plan
-    n_chunks, local = cstride // (vw * nv), None
-    if not rt.gpu_shaped and full and FORWARD_GROUP_RAYS * n_chunks <= rt.device.max_work_group_size:
-        # the group's rays (a tile row) share feature rows, which stay in cache over its chunks
-        size, local = -(-size // FORWARD_GROUP_RAYS) * FORWARD_GROUP_RAYS, (FORWARD_GROUP_RAYS, n_chunks)
+    n_chunks = cstride // (vw * nv)
+    # CPU shapes: for whole images a group's rays are a tile row, whose feature rows stay in cache
+    # over its chunks; always, the groups keep PoCL's per-group private arrays small
+    size, local = work_groups(rt, size, n_chunks)
     rt.launch("blend", (size, n_chunks), defines={"VW": vw, "NV": nv}, local_size=local,
               offsets=sel.offsets, count=sel.count, sel_ids=sel.ids, sel_w=sel.weights,
               features=features, cstride=cstride, full=full, n_rays=sel.n_rays, width=plan.width,
@@ -84,7 +94,8 @@ def blend_backward(sel: Selection, dimage: cla.Array, channels: int, out: cla.Ar
                   dfeatures=dfeatures)
         return dfeatures
     t = sel.transpose()
-    rt.launch("blend_backward", (sel.n_gaussians, cstride // (vw * nv)), defines={"VW": vw, "NV": nv},
+    size, local = work_groups(rt, sel.n_gaussians, cstride // (vw * nv))
+    rt.launch("blend_backward", (size, cstride // (vw * nv)), defines={"VW": vw, "NV": nv}, local_size=local,
               n=sel.n_gaussians, order=sel.backward_order(), n_chunks=t.chunks, cursor=t.cursor, t_ray=t.ray,
               t_w=t.weight, dimage=dimage, cstride=cstride, dfeatures=dfeatures)
     return dfeatures
