@@ -20,6 +20,15 @@ def assert_rows_close(got: np.ndarray, want: np.ndarray, scale: np.ndarray, rtol
     assert not bad.any(), f"{bad.sum()} elements differ, worst {np.abs(got - want)[bad].max()}"
 
 
+@pytest.mark.parametrize("channels,nv", [(1, 1), (37, 3), (64, 4), (496, 31), (512, 32), (2048, 32)])
+def test_cpu_work_items_take_the_largest_row_part_that_divides_it(channels, nv):
+    """CPU shapes accumulate the largest divisor of the row's vectors up to CPU_ROW_VECTORS (a
+    whole 512-float row); GPU shapes one vector; the padded row length does not depend on it."""
+    vw, cpu_nv, cstride = channel_layout(channels)
+    assert cpu_nv == nv and cstride % (vw * nv) == 0 and cstride - channels < vw
+    assert channel_layout(channels, gpu_shaped=True) == (vw, 1, cstride)
+
+
 @pytest.fixture(scope="module")
 def plan(random_scene):
     return rasterize_plan(*random_scene)
@@ -54,21 +63,22 @@ def test_forward_and_backward_equal_reference(plan, sampler, k, channels):
     assert np.abs(dF[np.setdiff1d(np.arange(n), h["ids"][valid])]).max(initial=0) == 0
 
 
-@pytest.mark.parametrize("owners_per_core", [1, 3, 1000, "gather"])
-def test_backward_bytes_do_not_depend_on_the_kernel(plan, monkeypatch, owners_per_core):
+@pytest.mark.parametrize("owners_per_core,channels", [(1, 64), (3, 64), (1000, 64), ("gather", 64),
+                                                     ("gather", 512)])
+def test_backward_bytes_do_not_depend_on_the_kernel(plan, monkeypatch, owners_per_core, channels):
     """The CPU scatter sums each Gaussian's entries in ray order whichever work-item owns it: any
-    number of owners (up to one per Gaussian), and the gather over the transpose, give the bytes
-    of the default, run after run."""
+    number of owners (up to one per Gaussian), and the gather over the transpose (4 vectors a
+    work-item at 64 channels, a whole row at 512), give the bytes of the default, run after run."""
     rng = np.random.default_rng(5)
     sel = select(plan, "volume", 1)
     assert blend_stage.scatters(sel)              # a whole image has more rays than Gaussians
-    dimage = device_rows(plan, rng.standard_normal((sel.n_rays, 64)).astype(np.float32))
-    first = blend_backward(sel, dimage, 64).get()
+    dimage = device_rows(plan, rng.standard_normal((sel.n_rays, channels)).astype(np.float32))
+    first = blend_backward(sel, dimage, channels).get()
     if owners_per_core == "gather":
         monkeypatch.setattr(blend_stage, "scatters", lambda sel: False)
     else:
         monkeypatch.setattr(blend_stage, "OWNERS_PER_CORE", owners_per_core)
-    second = blend_backward(sel, dimage, 64).get()
+    second = blend_backward(sel, dimage, channels).get()
     assert first.tobytes() == second.tobytes()
     assert np.abs(first).max() > 0
 
