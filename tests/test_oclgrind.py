@@ -136,9 +136,10 @@ def exercise() -> None:
         assert np.abs(alpha.numpy() - ref_alpha.numpy()).max() < 1e-5
         print(f"render_volume_fused background={background is not None}: ok "
               f"(densest ray {densest} Gaussians)", flush=True)
-    wide = rng.normal(size=(n, 40)).astype(np.float32)       # several channel chunks
+    wide = rng.normal(size=(n, 544)).astype(np.float32)      # two channel chunks of 17 vectors
     qr_cl.render_volume_fused(*geo, wide, cam.viewmat, cam.K, W, H)
-    print("render_volume_fused 40 channels: ok", flush=True)
+    qr_cl.rasterize(*geo, wide, cam.viewmat, cam.K, W, H, sampler="quantile", k=4)
+    print("render_volume_fused and rasterize, 544 channels: ok", flush=True)
 
     for degree in (1, 3):
         qr_cl.rasterize(*geo, sh, cam.viewmat, cam.K, W, H, sh_degree=degree)
