@@ -92,6 +92,22 @@ static inline int lanes_any(lanei m) {
 }
 static inline int lanes_all(lanei m) { return !lanes_any(~m); }
 
+/* The lanes set in mask m as the bits of an integer (bit l: lane l), without branches (a vector
+   reduction by swizzles was flagged by oclgrind: their shuffles have undefined operands). */
+static inline uint lane_bits(lanei m) {
+    uint bits = 0;
+    for (int l = 0; l < TILE; l++) bits |= (uint)(LANE_I(m, l) & 1) << l;
+    return bits;
+}
+
+/* for (each lane l set in mask m, in increasing order): visits only those lanes. For masks with
+   few lanes set, such as the lanes that cross a Q-Render boundary at a Gaussian, this beats a
+   loop over all TILE lanes with a test each (dense room, K=40 selection 208-210 -> 177-183 ms);
+   for masks with most lanes set (the V-Render and top-K writes) the plain loop was faster. */
+#define FOR_LANES(m, l) \
+    for (uint bits_##l = lane_bits(m), l = 0; bits_##l && (l = 31 - clz(bits_##l & (0u - bits_##l)), 1); \
+         bits_##l &= bits_##l - 1)
+
 #define BLOCK_ARGS __global const int2 *ranges, __global const int *ids, \
     __global const float8 *splats, __global const int2 *pixels, __global const int *order, \
     __global const int4 *blocks, const int full, const int width, const int height, const int tiles_x

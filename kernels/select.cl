@@ -27,8 +27,7 @@ static inline void normalize_weights(__global float *w, int n) {
    updated, and k advanced past every boundary T_test crossed (bound: the lane's next boundary,
    BOUNDARY(k): its (k+1)-th). Rare: at most K times per ray. */
 #define TAKE_QUANTILES(cross, g, a, T_test, BOUNDARY) \
-    for (int l = 0; l < TILE; l++) { \
-        if (!LANE_I(cross, l)) continue; \
+    FOR_LANES(cross, l) { \
         const size_t slot = (size_t)LANE_I(row, l) * K + LANE_I(n, l)++; \
         out_ids[slot] = g; \
         out_w[slot] = LANE(TQ, l) * LANE(a, l); \
