@@ -102,7 +102,7 @@ static inline uint lane_bits(lanei m) {
 
 /* for (each lane l set in mask m, in increasing order): visits only those lanes. For masks with
    few lanes set, such as the lanes that cross a Q-Render boundary at a Gaussian, this beats a
-   loop over all TILE lanes with a test each (dense room, K=40 selection 208-210 -> 177-183 ms);
+   loop over all TILE lanes with a test each (dense room, K=40 selection 208-210 -> 183-189 ms);
    for masks with most lanes set (the V-Render and top-K writes) the plain loop was faster. */
 #define FOR_LANES(m, l) \
     for (uint bits_##l = lane_bits(m), l = 0; bits_##l && (l = 31 - clz(bits_##l & (0u - bits_##l)), 1); \
