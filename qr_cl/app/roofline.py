@@ -54,10 +54,11 @@ def bare_gather_blend(rt: Runtime, rays: int, k: int, channels: int, n_rows: int
     image = cla.empty(rt.queue, (rays, cstride), np.float32)
     unused = cla.zeros(rt.queue, max(rays, cstride), np.float32)   # background and t_rem (no bg)
 
-    size, local = work_groups(rt, rays, cstride // (vw * nv))
+    n_chunks = cstride // (vw * nv)
+    size, local = work_groups(rt, rays, n_chunks)
 
     def run():
-        rt.launch("blend", (size, cstride // (vw * nv)), defines={"VW": vw, "NV": nv}, local_size=local,
+        rt.launch("blend", (size, n_chunks), defines={"VW": vw, "NV": nv}, local_size=local,
                   offsets=offsets, count=count, sel_ids=ids, sel_w=weights, features=features,
                   cstride=cstride, full=0, n_rays=rays, width=0, height=0, tiles_x=1, background=unused,
                   t_rem=unused, use_bg=0, stream=streamed(image.nbytes), image=image)

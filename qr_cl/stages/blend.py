@@ -11,13 +11,13 @@ from __future__ import annotations
 import numpy as np
 import pyopencl.array as cla
 
-from ..runtime import (Runtime, channel_layout, check_buffer, device_empty, device_zeros, padded_vector,
-                       streamed, to_device)
+from ..runtime import (TILE, Runtime, channel_layout, check_buffer, device_empty, device_zeros,
+                       padded_vector, streamed, to_device)
 from .select import Selection
 
 OWNERS_PER_CORE = 1   # the CPU backward scatter's work-items per compute unit
 OWNER_BINS = 4096     # ... whose Gaussian ranges are cut from a histogram of this many bins
-CPU_GROUP_ROWS = 16   # CPU shapes: a blend work-group takes 16 rows (rays, or dF rows) x all chunks
+CPU_GROUP_ROWS = TILE  # CPU shapes: blend work-groups of a tile row of rays (or dF rows) x all chunks
 
 
 def _check_rows(array: cla.Array, rows: int, cstride: int, name: str) -> None:
@@ -94,8 +94,9 @@ def blend_backward(sel: Selection, dimage: cla.Array, channels: int, out: cla.Ar
                   dfeatures=dfeatures)
         return dfeatures
     t = sel.transpose()
-    size, local = work_groups(rt, sel.n_gaussians, cstride // (vw * nv))
-    rt.launch("blend_backward", (size, cstride // (vw * nv)), defines={"VW": vw, "NV": nv}, local_size=local,
+    n_chunks = cstride // (vw * nv)
+    size, local = work_groups(rt, sel.n_gaussians, n_chunks)
+    rt.launch("blend_backward", (size, n_chunks), defines={"VW": vw, "NV": nv}, local_size=local,
               n=sel.n_gaussians, order=sel.backward_order(), n_chunks=t.chunks, cursor=t.cursor, t_ray=t.ray,
               t_w=t.weight, dimage=dimage, cstride=cstride, dfeatures=dfeatures)
     return dfeatures
