@@ -27,12 +27,12 @@ def keys(fox_or_procedural):
     rt = runtime()
     cam = orbit_cameras(g.means, 8, w, h)[1]
     dev = [to_device(rt, a) for a in (g.means, g.quats, g.scales, g.opacities)]
-    splats, _, rects, touched = project(rt, *dev, cam.viewmat, cam.K, w, h, 0.01, 1e10)
+    splats, _, footprints, touched = project(rt, *dev, cam.viewmat, cam.K, w, h, 0.01, 1e10)
     offsets = exclusive_scan(rt, touched, cla.empty_like(touched))
     m = int(touched.get().sum())
     keys, values = cla.empty(rt.queue, m, np.uint64), cla.empty(rt.queue, m, np.int32)
     tiles_x, tiles_y = tile_grid(w, h)
-    rt.launch("emit_keys", len(g), n=len(g), rects=rects, offsets=offsets, splats=splats,
+    rt.launch("emit_keys", len(g), n=len(g), footprints=footprints, offsets=offsets, splats=splats,
               tiles_x=tiles_x, keys=keys, values=values)
     n_tiles = tiles_x * tiles_y
     return touched, keys, values, 32 + int(n_tiles - 1).bit_length()

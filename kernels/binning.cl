@@ -1,21 +1,22 @@
-/* Tile binning: one sort key per (Gaussian, touched tile), then per-tile [start, end) ranges. */
+/* Tile binning: one sort key per (Gaussian, touched tile), then per-tile [start, end) ranges.
+   Every pass visits a Gaussian's tiles as the row spans of its blend ellipse inside its tile
+   rectangle, in row-major order (FOR_TILE_SPANS in common.h). */
 #include "common.h"
 
 /* key = tile id << 32 | float bits of the (positive) depth, so a sort orders by tile then depth. */
-__kernel void emit_keys(const int n, __global const int4 *rects, __global const int *offsets,
+__kernel void emit_keys(const int n, __global const int16 *footprints, __global const int *offsets,
                         __global const float8 *splats, const int tiles_x,
                         __global ulong *keys, __global int *values) {
     const int i = get_global_id(0);
     if (i >= n) return;
-    int4 rect = rects[i];
+    const ulong depth_bits = (ulong)as_uint(splats[i].s6);
     int out = offsets[i];
-    ulong depth_bits = (ulong)as_uint(splats[i].s6);
-    for (int ty = rect.y; ty < rect.w; ty++)
-        for (int tx = rect.x; tx < rect.z; tx++) {
+    FOR_TILE_SPANS(i, footprints[i], ty, x,
+        for (int tx = x.x; tx < x.y; tx++) {
             keys[out] = ((ulong)(ty * tiles_x + tx) << 32) | depth_bits;
             values[out] = i;
             out++;
-        }
+        })
 }
 
 /* ranges[tile] = [first, last + 1) of the tile's entries in the sorted keys (0, 0 when empty). */
@@ -33,29 +34,46 @@ __kernel void tile_ranges(const int m, __global const ulong *keys, __global int2
    order[c * per, (c + 1) * per) and uses its own histogram slots (tile * n_chunks + c): no
    atomics, no barriers, an exclusive scan between the two passes. */
 
-/* Counting pass: hist[tile * n_chunks + c] = the pairs of work-item c's Gaussians in the tile. */
+/* sorted[i] = footprints[order[i]]: the footprints in depth order, so that the two passes below
+   read them as one stream (gathered here by many independent loads in flight, instead of one
+   dependent miss per Gaussian in each pass). */
+__kernel void gather_footprints(const int n, __global const int *order, __global const int16 *footprints,
+                                __global int16 *sorted) {
+    const int i = get_global_id(0);
+    if (i < n) sorted[i] = footprints[order[i]];
+}
+
+/* Counting pass: hist[tile * n_chunks + c] = the pairs of work-item c's Gaussians in the tile.
+   Each row span adds +1 at its first tile and -1 after its last (a difference along the tile
+   row, so the work is per row, not per tile), then the work-item sums its slots along each row. */
 __kernel void bin_count(const int n, const int per, const int n_chunks, __global const int *order,
-                        __global const int4 *rects, const int tiles_x, __global int *hist) {
+                        __global const int16 *sorted, __global const float8 *splats,
+                        const int tiles_x, const int n_tiles, __global int *hist) {
     const int c = get_global_id(0);
     const int i1 = min(n, (c + 1) * per);
     for (int i = c * per; i < i1; i++) {
-        const int4 rect = rects[order[i]];
-        for (int ty = rect.y; ty < rect.w; ty++)
-            for (int tx = rect.x; tx < rect.z; tx++) hist[(ty * tiles_x + tx) * n_chunks + c]++;
+        const int g = order[i];
+        FOR_TILE_SPANS(g, sorted[i], ty, x,
+            hist[(ty * tiles_x + x.x) * n_chunks + c]++;
+            hist[(ty * tiles_x + min(x.y, tiles_x - 1)) * n_chunks + c] -= x.y < tiles_x;)
+    }
+    int run = 0;
+    for (int t = 0; t < n_tiles; t++) {
+        run = (t % tiles_x ? run : 0) + hist[t * n_chunks + c];
+        hist[t * n_chunks + c] = run;
     }
 }
 
 /* Fill pass: cursor (the exclusive scan of hist) slot (tile, c) is where work-item c's next
    Gaussian of the tile goes in ids. */
 __kernel void bin_fill(const int n, const int per, const int n_chunks, __global const int *order,
-                       __global const int4 *rects, const int tiles_x, __global int *cursor,
-                       __global int *ids) {
+                       __global const int16 *sorted, __global const float8 *splats,
+                       const int tiles_x, __global int *cursor, __global int *ids) {
     const int c = get_global_id(0);
     const int i1 = min(n, (c + 1) * per);
     for (int i = c * per; i < i1; i++) {
         const int g = order[i];
-        const int4 rect = rects[g];
-        for (int ty = rect.y; ty < rect.w; ty++)
-            for (int tx = rect.x; tx < rect.z; tx++) ids[cursor[(ty * tiles_x + tx) * n_chunks + c]++] = g;
+        FOR_TILE_SPANS(g, sorted[i], ty, x,
+            for (int tx = x.x; tx < x.y; tx++) ids[cursor[(ty * tiles_x + tx) * n_chunks + c]++] = g;)
     }
 }

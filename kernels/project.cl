@@ -6,13 +6,6 @@
    RADIUS_MAX in qr_cl/stages/project_ref.py. */
 #define RADIUS_MAX 1073741824.f
 
-/* Tile index of pixel coordinate v clamped to [0, tiles], clamped in float before the
-   conversion (out-of-range conversions are undefined); fmax/fmin map NaN to the bound. Truncates
-   toward zero like the (int) conversion it replaces. */
-static inline int tile_index(float v, int tiles) {
-    return (int)fmin(fmax(v / TILE, 0.f), (float)tiles);
-}
-
 /* The EWA terms of one Gaussian (mean m, unit quaternion q, scales sc) seen by a camera:
    p = W m + t (camera frame), R (rotation), M = R S, cov = W M M^T W^T (camera frame), the
    Jacobian J = [[j.x, 0, j.y], [0, j.z, j.w]] of the perspective projection with the view
@@ -69,7 +62,8 @@ static inline ewa_t ewa(float3 m, float4 q, float3 sc, __global const float *vie
 }
 
 /* Outputs per Gaussian: splat = (mean2d.x, mean2d.y, conic a, b, c, opacity, depth, sigma_max),
-   radius in pixels (0 = culled), tile rectangle [x0, y0, x1, y1) and tiles touched. */
+   radius in pixels (0 = culled), footprint (common.h: the tile rectangle [x0, y0, x1, y1) and its
+   rows' tile spans) and tiles touched (the tiles of those spans). */
 __kernel void project(const int n,
                       __global const float *means,      /* [N,3] world */
                       __global const float4 *quats,     /* [N] unit w,x,y,z */
@@ -80,12 +74,12 @@ __kernel void project(const int n,
                       const int width, const int height, const float near, const float far,
                       const int tiles_x, const int tiles_y,
                       __global float8 *splats, __global int *radii,
-                      __global int4 *rects, __global int *tiles_touched) {
+                      __global int16 *footprints, __global int *tiles_touched) {
     const int i = get_global_id(0);
     if (i >= n) return;
     radii[i] = 0;
     tiles_touched[i] = 0;
-    rects[i] = (int4)(0);
+    footprints[i] = (int16)(0);
     splats[i] = (float8)(0.f);
 
     const ewa_t e = ewa(vload3(i, means), quats[i], vload3(i, scales), viewmat, fx, fy, cx, cy, width, height);
@@ -118,12 +112,35 @@ __kernel void project(const int n,
     int4 rect = (int4)(tile_index(mean2d.x - ext.x, tiles_x), tile_index(mean2d.y - ext.y, tiles_y),
                        tile_index(mean2d.x + ext.x + TILE - 1, tiles_x),
                        tile_index(mean2d.y + ext.y + TILE - 1, tiles_y));
-    int touched = (rect.z - rect.x) * (rect.w - rect.y);
+    const float8 splat = (float8)(mean2d.x, mean2d.y, c11 * inv, -c01 * inv, c00 * inv, opacity, p.z, sigma_max);
+    /* Tiles touched: those of each row that the blend ellipse reaches (tile_spans in common.h),
+       stored for the binning passes where they fit (spans_stored). A single tile has nothing to
+       cull (the twin agrees). */
+    ushort rows[SPAN_ROWS] = {0};
+    int touched = 1;
+    if ((rect.z - rect.x) * (rect.w - rect.y) == 1) {
+        rows[0] = 1 << 8;
+    } else {
+        const span_t span = span_of(splat);
+        const int store = spans_stored(rect);
+        touched = 0;
+        for (int ty0 = rect.y; ty0 < rect.w; ty0 += TILE) {
+            lanei x0, x1;
+            tile_spans(&span, rect, ty0, tiles_x, &x0, &x1);
+            touched += lanes_sum(x1 - x0);
+            for (int r = ty0 - rect.y; store && r < min(SPAN_ROWS, ty0 + TILE - rect.y); r++) {
+                const int l = r - (ty0 - rect.y);
+                rows[r] = (ushort)((LANE_I(x0, l) - rect.x) | (LANE_I(x1, l) - rect.x) << 8);
+            }
+        }
+    }
     if (touched <= 0) return;
 
-    splats[i] = (float8)(mean2d.x, mean2d.y, c11 * inv, -c01 * inv, c00 * inv, opacity, p.z, sigma_max);
+    splats[i] = splat;
     radii[i] = (int)fmin(radius, RADIUS_MAX);
-    rects[i] = rect;
+    __global int *footprint = (__global int *)(footprints + i);
+    vstore4(rect, 0, footprint);
+    for (int k = 0; k < SPAN_ROWS / 8; k++) vstore8(vload8(k, rows), k, (__global ushort *)(footprint + 4));
     tiles_touched[i] = touched;
 }
 

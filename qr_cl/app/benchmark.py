@@ -132,10 +132,10 @@ class Sweep:
             self._finish()
             return out
         self._row(scene, "projection", "-", 0, 0, measure(do_project, self.rounds))
-        splats, radii, rects, touched = do_project()
+        splats, radii, footprints, touched = do_project()
 
         def bin_sort():
-            out = bin_and_sort(self.rt, splats, rects, touched, cam.width, cam.height)
+            out = bin_and_sort(self.rt, splats, footprints, touched, cam.width, cam.height)
             self._finish()
             return out
         self._row(scene, "binning+sort", "-", 0, 0, measure(bin_sort, self.rounds))

@@ -11,6 +11,17 @@ TILE = 16                          # tiles are TILE x TILE pixels
 ALPHA_MIN = np.float32(1) / np.float32(255)   # Gaussians with a smaller alpha are skipped
 ALPHA_MAX = np.float32(0.99)       # alpha is clamped here
 T_MIN = np.float32(1e-4)           # V-Render stops before T would drop to this
+#: Tile spans (tile_span in kernels/common.h): a Gaussian is binned to the tiles of each tile row that
+#: its blend ellipse sigma <= sigma_max reaches, the ellipse widened against float rounding: sigma_max
+#: + SPAN_SLACK, times 1 + SPAN_ROUNDING * eps32 * (the conic's condition a c / det); the x-extent by
+#: SPAN_MARGIN_PX + SPAN_MARGIN_REL * its half-width. Conics with det <= SPAN_DET_MIN or a condition
+#: above SPAN_COND_MAX (needles, or not positive definite in float32) keep their whole tile rectangle.
+SPAN_SLACK = 2e-3
+SPAN_ROUNDING = 64.0
+SPAN_MARGIN_PX = 1.0
+SPAN_MARGIN_REL = 1e-3
+SPAN_DET_MIN = 1e-30
+SPAN_COND_MAX = 1e5
 MAX_CHANNELS = 2048                # feature channels a render supports (1..MAX_CHANNELS)
 #: Images of at least this many bytes are written with non-temporal stores (VSTREAM in
 #: kernels/common.h); smaller ones, e.g. a training step's rays, are read right after and stay cached.
@@ -28,15 +39,21 @@ SH_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.37317633
          -0.4570457994644658, 1.445305721320277, -0.5900435899266435)
 
 
+SPAN_CONSTANTS = ("SPAN_SLACK", "SPAN_ROUNDING", "SPAN_MARGIN_PX", "SPAN_MARGIN_REL", "SPAN_DET_MIN",
+                  "SPAN_COND_MAX")
+
+
 def _float_literal(x: float) -> str:
     """OpenCL C float literal of float32(x) (9 significant digits round-trip a float32)."""
-    text = f"{np.float32(x):.9g}f"
+    text = f"{np.float32(x):.9g}"
+    text += "f" if any(ch in text for ch in ".e") else ".f"        # 64 -> 64.f, not the int 64f
     return f"({text})" if text.startswith("-") else text
 
 
 def _kernel_constants() -> dict[str, str]:
     out = {"TILE": str(TILE), "ALPHA_MIN": _float_literal(ALPHA_MIN),
            "ALPHA_MAX": _float_literal(ALPHA_MAX), "T_MIN": _float_literal(T_MIN),
+           **{name: _float_literal(globals()[name]) for name in SPAN_CONSTANTS},
            "SH_C0": _float_literal(SH_C0), "SH_C1": _float_literal(SH_C1)}
     for name, values in (("SH_C2", SH_C2), ("SH_C3", SH_C3)):
         out.update({f"{name}_{i}": _float_literal(v) for i, v in enumerate(values)})

@@ -163,7 +163,7 @@ def sort_pairs(rt: Runtime, keys: cla.Array, values: cla.Array, key_bits: int) -
     return sorted_keys, sorted_values
 
 
-def bin_and_sort(rt: Runtime, splats: cla.Array, rects: cla.Array, touched: cla.Array,
+def bin_and_sort(rt: Runtime, splats: cla.Array, footprints: cla.Array, touched: cla.Array,
                  width: int, height: int) -> tuple[cla.Array, cla.Array, int]:
     """Keys per (Gaussian, tile), sorted by tile then depth, from :func:`qr_cl.stages.project.project`.
 
@@ -180,10 +180,10 @@ def bin_and_sort(rt: Runtime, splats: cla.Array, rects: cla.Array, touched: cla.
     if m == 0:
         return ranges, device_zeros(rt, 1, np.int32), 0
     if not rt.gpu_shaped:
-        return _bin_counted(rt, splats, rects, touched, tiles_x, n_tiles, m)
+        return _bin_counted(rt, splats, footprints, touched, tiles_x, n_tiles, m)
     keys = device_empty(rt, m, np.uint64)
     values = device_empty(rt, m, np.int32)
-    rt.launch("emit_keys", n, n=n, rects=rects, offsets=offsets, splats=splats, tiles_x=tiles_x,
+    rt.launch("emit_keys", n, n=n, footprints=footprints, offsets=offsets, splats=splats, tiles_x=tiles_x,
               keys=keys, values=values)
     key_bits = 32 + max(1, int(n_tiles - 1).bit_length())
     keys, ids = sort_pairs(rt, keys, values, key_bits)
@@ -191,8 +191,8 @@ def bin_and_sort(rt: Runtime, splats: cla.Array, rects: cla.Array, touched: cla.
     return ranges, ids, m
 
 
-def _bin_counted(rt: Runtime, splats: cla.Array, rects: cla.Array, touched: cla.Array, tiles_x: int,
-                 n_tiles: int, m: int) -> tuple[cla.Array, cla.Array, int]:
+def _bin_counted(rt: Runtime, splats: cla.Array, footprints: cla.Array, touched: cla.Array,
+                 tiles_x: int, n_tiles: int, m: int) -> tuple[cla.Array, cla.Array, int]:
     """CPU-shaped binning: the touching Gaussians sorted by depth on the host (torch's stable sort
     of N keys instead of M), then their M (Gaussian, tile) pairs by a stable counting sort by tile
     (bin_count / bin_fill). Each tile's list is by depth, then index, as the key sort gives it.
@@ -202,9 +202,12 @@ def _bin_counted(rt: Runtime, splats: cla.Array, rects: cla.Array, touched: cla.
     by_depth = torch.sort(torch.from_numpy(depth_bits), stable=True)[1].numpy()
     order = to_device(rt, hit[by_depth], np.int32)
     n, chunks = len(hit), max(1, min(len(hit), BIN_CHUNKS_PER_CORE * rt.device.max_compute_units))
-    args = dict(n=n, per=-(-n // chunks), n_chunks=chunks, order=order, rects=rects, tiles_x=tiles_x)
+    sorted_footprints = device_empty(rt, (n, 16), np.int32)
+    rt.launch("gather_footprints", n, n=n, order=order, footprints=footprints, sorted=sorted_footprints)
+    args = dict(n=n, per=-(-n // chunks), n_chunks=chunks, order=order, sorted=sorted_footprints,
+                splats=splats, tiles_x=tiles_x)
     hist = device_zeros(rt, n_tiles * chunks, np.int32)
-    rt.launch("bin_count", chunks, local_size=(1,), **args, hist=hist)
+    rt.launch("bin_count", chunks, local_size=(1,), **args, n_tiles=n_tiles, hist=hist)
     counts = hist.get()
     ends = np.cumsum(counts, dtype=np.int64)
     ids = device_empty(rt, m, np.int32)

@@ -5,18 +5,20 @@ import numpy as np
 
 from ..runtime import TILE
 from .project import tile_grid
+from .project_ref import tile_spans
 
 
 def bin_and_sort(proj: dict, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
-    """Per-tile depth-sorted Gaussian ids (binning.cl + sort). Returns (ranges [tiles,2], ids [M])."""
+    """Per-tile depth-sorted Gaussian ids (binning.cl + sort), each Gaussian in the tiles of its
+    :func:`~qr_cl.stages.project_ref.tile_spans`. Returns (ranges [tiles,2], ids [M])."""
     tiles_x, tiles_y = tile_grid(width, height)
     n_tiles = tiles_x * tiles_y
     tile_ids, gauss_ids = [], []
     for i in np.flatnonzero(proj["radii"] > 0):
-        x0, y0, x1, y1 = proj["rects"][i]
-        tys, txs = np.mgrid[y0:y1, x0:x1]
-        tile_ids.append((tys * tiles_x + txs).ravel())
-        gauss_ids.append(np.full(tys.size, i))
+        spans = tile_spans(proj["means2d"][i], proj["conics"][i], proj["opacities"][i], proj["rects"][i], tiles_x)
+        tiles = np.concatenate([ty * tiles_x + np.arange(x0, x1) for ty, x0, x1 in spans])
+        tile_ids.append(tiles)
+        gauss_ids.append(np.full(tiles.size, i))
     tile_ids = np.concatenate(tile_ids) if tile_ids else np.zeros(0, np.int64)
     gauss_ids = np.concatenate(gauss_ids) if gauss_ids else np.zeros(0, np.int64)
     depth32 = proj["depths"].astype(np.float32)[gauss_ids]   # the kernel sorts float32 depths
@@ -24,7 +26,7 @@ def bin_and_sort(proj: dict, width: int, height: int) -> tuple[np.ndarray, np.nd
     tile_ids, ids = tile_ids[order], gauss_ids[order]
     starts = np.searchsorted(tile_ids, np.arange(n_tiles), "left")
     ends = np.searchsorted(tile_ids, np.arange(n_tiles), "right")
-    return np.stack([starts, ends], 1), ids
+    return np.where((ends > starts)[:, None], np.stack([starts, ends], 1), 0), ids   # empty: (0, 0)
 
 
 def tile_pixels(tile: int, width: int, height: int) -> np.ndarray:

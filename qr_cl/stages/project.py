@@ -20,20 +20,22 @@ def project(rt: Runtime, means: cla.Array, quats: cla.Array, scales: cla.Array, 
     opacities [N] (activated), for viewmat [4,4] world-to-camera and K [3,3] (px).
 
     Returns splats [N,8] (mean2d x, y px; conic a, b, c; opacity; depth; sigma_max), radii [N] int32
-    (0 = culled), rects [N,4] int32 tile rectangle [x0, y0, x1, y1) and tiles_touched [N] int32.
+    (0 = culled), footprints [N,16] int32 (the tile rectangle [x0, y0, x1, y1), then the tiles of its
+    rows that the blend ellipse reaches, packed: see spans_stored in kernels/common.h) and
+    tiles_touched [N] int32 (the tiles of those rows).
     """
     n = means.shape[0]
     tiles_x, tiles_y = tile_grid(width, height)
     splats = device_empty(rt, (n, 8), np.float32)
     radii = device_empty(rt, n, np.int32)
-    rects = device_empty(rt, (n, 4), np.int32)
+    footprints = device_empty(rt, (n, 16), np.int32)
     touched = device_empty(rt, n, np.int32)
     rt.launch("project", n, n=n, means=means, quats=quats, scales=scales, opacities=opacities,
               viewmat=to_device(rt, np.asarray(viewmat).reshape(16)),
               fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], width=width, height=height,
               near=near, far=far, tiles_x=tiles_x, tiles_y=tiles_y,
-              splats=splats, radii=radii, rects=rects, tiles_touched=touched)
-    return splats, radii, rects, touched
+              splats=splats, radii=radii, footprints=footprints, tiles_touched=touched)
+    return splats, radii, footprints, touched
 
 
 def project_backward(rt: Runtime, means: cla.Array, quats: cla.Array, scales: cla.Array, radii: cla.Array,
