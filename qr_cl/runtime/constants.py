@@ -11,7 +11,7 @@ TILE = 16                          # tiles are TILE x TILE pixels
 ALPHA_MIN = np.float32(1) / np.float32(255)   # Gaussians with a smaller alpha are skipped
 ALPHA_MAX = np.float32(0.99)       # alpha is clamped here
 T_MIN = np.float32(1e-4)           # V-Render stops before T would drop to this
-#: Tile spans (tile_span in kernels/common.h): a Gaussian is binned to the tiles of each tile row that
+#: Tile spans (tile_spans in kernels/common.h): a Gaussian is binned to the tiles of each tile row that
 #: its blend ellipse sigma <= sigma_max reaches, the ellipse widened against float rounding: sigma_max
 #: + SPAN_SLACK, times 1 + SPAN_ROUNDING * eps32 * (the conic's condition a c / det); the x-extent by
 #: SPAN_MARGIN_PX + SPAN_MARGIN_REL * its half-width. Conics with det <= SPAN_DET_MIN or a condition
