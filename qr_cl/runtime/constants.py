@@ -39,10 +39,6 @@ SH_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.37317633
          -0.4570457994644658, 1.445305721320277, -0.5900435899266435)
 
 
-SPAN_CONSTANTS = ("SPAN_SLACK", "SPAN_ROUNDING", "SPAN_MARGIN_PX", "SPAN_MARGIN_REL", "SPAN_DET_MIN",
-                  "SPAN_COND_MAX")
-
-
 def _float_literal(x: float) -> str:
     """OpenCL C float literal of float32(x) (9 significant digits round-trip a float32)."""
     text = f"{np.float32(x):.9g}"
@@ -53,7 +49,9 @@ def _float_literal(x: float) -> str:
 def _kernel_constants() -> dict[str, str]:
     out = {"TILE": str(TILE), "ALPHA_MIN": _float_literal(ALPHA_MIN),
            "ALPHA_MAX": _float_literal(ALPHA_MAX), "T_MIN": _float_literal(T_MIN),
-           **{name: _float_literal(globals()[name]) for name in SPAN_CONSTANTS},
+           "SPAN_SLACK": _float_literal(SPAN_SLACK), "SPAN_ROUNDING": _float_literal(SPAN_ROUNDING),
+           "SPAN_MARGIN_PX": _float_literal(SPAN_MARGIN_PX), "SPAN_MARGIN_REL": _float_literal(SPAN_MARGIN_REL),
+           "SPAN_DET_MIN": _float_literal(SPAN_DET_MIN), "SPAN_COND_MAX": _float_literal(SPAN_COND_MAX),
            "SH_C0": _float_literal(SH_C0), "SH_C1": _float_literal(SH_C1)}
     for name, values in (("SH_C2", SH_C2), ("SH_C3", SH_C3)):
         out.update({f"{name}_{i}": _float_literal(v) for i, v in enumerate(values)})

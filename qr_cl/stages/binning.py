@@ -19,7 +19,7 @@ import torch
 from pyopencl.algorithm import RadixSort
 
 from ..runtime import Runtime, device_empty, device_zeros, exclusive_scan, host_empty, last_value, to_device
-from .project import tile_grid
+from .project import FOOTPRINT_INTS, tile_grid
 
 BIN_CHUNKS_PER_CORE = 4   # the CPU binning's work-items per compute unit
 PLAN_META_KEYS = ("means2d", "conics", "opacities", "depths", "radii", "tile_ranges", "flatten_ids",
@@ -202,7 +202,7 @@ def _bin_counted(rt: Runtime, splats: cla.Array, footprints: cla.Array, touched:
     by_depth = torch.sort(torch.from_numpy(depth_bits), stable=True)[1].numpy()
     order = to_device(rt, hit[by_depth], np.int32)
     n, chunks = len(hit), max(1, min(len(hit), BIN_CHUNKS_PER_CORE * rt.device.max_compute_units))
-    sorted_footprints = device_empty(rt, (n, 16), np.int32)
+    sorted_footprints = device_empty(rt, (n, FOOTPRINT_INTS), np.int32)
     rt.launch("gather_footprints", n, n=n, order=order, footprints=footprints, sorted=sorted_footprints)
     args = dict(n=n, per=-(-n // chunks), n_chunks=chunks, order=order, sorted=sorted_footprints,
                 splats=splats, tiles_x=tiles_x)

@@ -8,6 +8,10 @@ import pyopencl.array as cla
 from ..runtime import TILE, Runtime, device_empty, to_device
 
 
+#: int32 entries of a footprint (int16 in kernels/common.h: tile rectangle + stored row spans).
+FOOTPRINT_INTS = 16
+
+
 def tile_grid(width: int, height: int) -> tuple[int, int]:
     """(tiles_x, tiles_y): TILE x TILE tiles covering a width x height image."""
     return (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
@@ -20,15 +24,15 @@ def project(rt: Runtime, means: cla.Array, quats: cla.Array, scales: cla.Array, 
     opacities [N] (activated), for viewmat [4,4] world-to-camera and K [3,3] (px).
 
     Returns splats [N,8] (mean2d x, y px; conic a, b, c; opacity; depth; sigma_max), radii [N] int32
-    (0 = culled), footprints [N,16] int32 (the tile rectangle [x0, y0, x1, y1), then the tiles of its
-    rows that the blend ellipse reaches, packed: see spans_stored in kernels/common.h) and
-    tiles_touched [N] int32 (the tiles of those rows).
+    (0 = culled), footprints [N, FOOTPRINT_INTS] int32 (the tile rectangle [x0, y0, x1, y1), then
+    the tiles of its rows that the blend ellipse reaches, packed: see spans_stored in
+    kernels/common.h) and tiles_touched [N] int32 (the tiles of those rows).
     """
     n = means.shape[0]
     tiles_x, tiles_y = tile_grid(width, height)
     splats = device_empty(rt, (n, 8), np.float32)
     radii = device_empty(rt, n, np.int32)
-    footprints = device_empty(rt, (n, 16), np.int32)
+    footprints = device_empty(rt, (n, FOOTPRINT_INTS), np.int32)
     touched = device_empty(rt, n, np.int32)
     rt.launch("project", n, n=n, means=means, quats=quats, scales=scales, opacities=opacities,
               viewmat=to_device(rt, np.asarray(viewmat).reshape(16)),
