@@ -6,21 +6,6 @@
 #ifndef QR_CL_COMMON_H
 #define QR_CL_COMMON_H
 
-/* Rotation matrix (row-major, 9 floats) of a unit quaternion q = (w, x, y, z). */
-static inline void quat_to_rotmat(float4 q, float *r) {
-    float w = q.x, x = q.y, y = q.z, z = q.w;
-    r[0] = 1.f - 2.f * (y * y + z * z); r[1] = 2.f * (x * y - w * z); r[2] = 2.f * (x * z + w * y);
-    r[3] = 2.f * (x * y + w * z); r[4] = 1.f - 2.f * (x * x + z * z); r[5] = 2.f * (y * z - w * x);
-    r[6] = 2.f * (x * z - w * y); r[7] = 2.f * (y * z + w * x); r[8] = 1.f - 2.f * (x * x + y * y);
-}
-
-/* c = a * b for row-major 3x3 matrices. */
-static inline void mat3_mul(const float *a, const float *b, float *c) {
-    for (int i = 0; i < 3; i++)
-        for (int j = 0; j < 3; j++)
-            c[3 * i + j] = a[3 * i] * b[j] + a[3 * i + 1] * b[3 + j] + a[3 * i + 2] * b[6 + j];
-}
-
 /* Gaussian density exponent at offset d = mean2d - pixel: 0.5 (a dx^2 + c dy^2) + b dx dy,
    with conic (a, b, c) the inverse 2D covariance. */
 static inline float splat_sigma(float a, float b, float c, float dx, float dy) {

@@ -19,7 +19,7 @@ import pyopencl as cl
 import pyopencl.array as cla
 import pyopencl.tools as cl_tools
 
-from .constants import KERNEL_CONSTANTS
+from .constants import KERNEL_CONSTANTS, TILE
 
 NO_OPENCL_HELP = (
     "No OpenCL platform was found. qr-cl runs its kernels through OpenCL; on a CPU-only Debian or "
@@ -152,6 +152,11 @@ def kernel_files() -> dict[str, str]:
 
 #: Work-group size of GPU-shaped launches (a multiple of every vendor's SIMD width: 32 or 64).
 GROUP_SIZE = 64
+#: Work-group size of the lane kernels, whose work-items hold TILE-wide vectors of rays or Gaussians
+#: (select.cl, vrender.cl, project.cl): PoCL runs the work-items of a group on one thread's stack,
+#: and its default groups of up to 4096 overflow it with their private arrays (garbage or a crash on
+#: a 640x480 image), so the size is set, not left to the driver.
+BLOCK_GROUP = (TILE,)
 
 #: Element dtype of the OpenCL C scalar types a kernel argument may have (vectors: their base).
 _CL_TYPES = {"char": np.int8, "uchar": np.uint8, "short": np.int16, "ushort": np.uint16,

@@ -1,11 +1,11 @@
-"""Projection stage (project.cl): 3D Gaussians + pinhole camera -> 2D splats, one work-item per
-Gaussian, EWA with the 0.3 px low-pass of 3DGS. Twin: :mod:`qr_cl.stages.project_ref`."""
+"""Projection stage (project.cl): 3D Gaussians + pinhole camera -> 2D splats, TILE Gaussians per
+work-item (as SIMD lanes), EWA with the 0.3 px low-pass of 3DGS. Twin: :mod:`qr_cl.stages.project_ref`."""
 from __future__ import annotations
 
 import numpy as np
 import pyopencl.array as cla
 
-from ..runtime import TILE, Runtime, device_empty, to_device
+from ..runtime import BLOCK_GROUP, TILE, Runtime, device_empty, to_device
 
 
 #: int32 entries of a footprint (int16 in kernels/common.h: tile rectangle + stored row spans).
@@ -15,6 +15,12 @@ FOOTPRINT_INTS = 16
 def tile_grid(width: int, height: int) -> tuple[int, int]:
     """(tiles_x, tiles_y): TILE x TILE tiles covering a width x height image."""
     return (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
+
+
+def lane_items(n: int) -> int:
+    """Global size of a kernel with TILE Gaussians per work-item (project.cl) for N = ``n``, in
+    whole work-groups of :data:`~qr_cl.runtime.BLOCK_GROUP` (work-items past N return at once)."""
+    return -(-n // (TILE * BLOCK_GROUP[0])) * BLOCK_GROUP[0]
 
 
 def project(rt: Runtime, means: cla.Array, quats: cla.Array, scales: cla.Array, opacities: cla.Array,
@@ -34,7 +40,7 @@ def project(rt: Runtime, means: cla.Array, quats: cla.Array, scales: cla.Array, 
     radii = device_empty(rt, n, np.int32)
     footprints = device_empty(rt, (n, FOOTPRINT_INTS), np.int32)
     touched = device_empty(rt, n, np.int32)
-    rt.launch("project", n, n=n, means=means, quats=quats, scales=scales, opacities=opacities,
+    rt.launch("project", lane_items(n), local_size=BLOCK_GROUP, n=n, means=means, quats=quats, scales=scales, opacities=opacities,
               viewmat=to_device(rt, np.asarray(viewmat).reshape(16)),
               fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], width=width, height=height,
               near=near, far=far, tiles_x=tiles_x, tiles_y=tiles_y,
@@ -52,7 +58,7 @@ def project_backward(rt: Runtime, means: cla.Array, quats: cla.Array, scales: cl
     n = means.shape[0]
     d_means, d_scales = device_empty(rt, (n, 3), np.float32), device_empty(rt, (n, 3), np.float32)
     d_quats, d_opacities = device_empty(rt, (n, 4), np.float32), device_empty(rt, n, np.float32)
-    rt.launch("project_backward", n, n=n, means=means, quats=quats, scales=scales,
+    rt.launch("project_backward", lane_items(n), local_size=BLOCK_GROUP, n=n, means=means, quats=quats, scales=scales,
               viewmat=to_device(rt, np.asarray(viewmat, np.float32).reshape(16)),
               fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], width=width, height=height, radii=radii,
               d_splats=d_splats, d_means=d_means, d_quats=d_quats, d_scales=d_scales, d_opacities=d_opacities)

@@ -26,14 +26,10 @@ import pyopencl as cl
 import pyopencl.array as cla
 from pyopencl.scan import InclusiveScanKernel
 
-from ..runtime import (SAMPLERS, TILE, check_buffer, device_empty, device_zeros, exclusive_scan, last_value,
+from ..runtime import (BLOCK_GROUP, SAMPLERS, TILE, check_buffer, device_empty, device_zeros, exclusive_scan, last_value,
                        to_device)
 from .binning import RasterPlan, sort_pairs
 
-#: Work-group size of the block kernels (select.cl, vrender.cl): PoCL runs the work-items of a group
-#: on one thread's stack, and its default groups of up to 4096 overflow it with the block walk's
-#: private batches (garbage or a crash on a 640x480 image), so the size is set, not left to the driver.
-BLOCK_GROUP = (TILE,)
 CHUNKS_PER_CORE = 4          # the CPU transpose splits the rays into this many chunks per compute unit
 MAX_HIST = 1 << 24            # ... and n_gaussians * chunks stays below this many ints
 

@@ -6,10 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pyopencl.array as cla
 
-from ..runtime import (TILE, channel_layout, check_buffer, device_empty, host_empty, host_output, padded_vector,
+from ..runtime import (BLOCK_GROUP, TILE, channel_layout, check_buffer, device_empty, host_empty, host_output, padded_vector,
                        streamed, to_device)
 from .binning import RasterPlan
-from .select import BLOCK_GROUP
 
 
 def render_fused(plan: RasterPlan, features: cla.Array, channels: int,
