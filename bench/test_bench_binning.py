@@ -27,7 +27,7 @@ def keys(fox_or_procedural):
     rt = runtime()
     cam = orbit_cameras(g.means, 8, w, h)[1]
     dev = [to_device(rt, a) for a in (g.means, g.quats, g.scales, g.opacities)]
-    splats, _, footprints, touched = project(rt, *dev, cam.viewmat, cam.K, w, h, 0.01, 1e10)
+    splats, _, footprints, touched, _ = project(rt, *dev, cam.viewmat, cam.K, w, h, 0.01, 1e10)
     offsets = exclusive_scan(rt, touched, cla.empty_like(touched))
     m = int(touched.get().sum())
     keys, values = cla.empty(rt.queue, m, np.uint64), cla.empty(rt.queue, m, np.int32)

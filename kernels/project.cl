@@ -129,8 +129,9 @@ static inline int touched_tiles(float8 s, int4 rect, int tiles_x, ushort *rows) 
 
 /* Outputs per Gaussian: splat = (mean2d.x, mean2d.y, conic a, b, c, opacity, depth, sigma_max),
    radius in pixels (0 = culled), footprint (common.h: the tile rectangle [x0, y0, x1, y1) and its
-   rows' tile spans) and tiles touched (the tiles of those spans). Work-item g projects the
-   Gaussians [g TILE, (g + 1) TILE). */
+   rows' tile spans), tiles touched (the tiles of those spans) and its depth key (the bits of its
+   positive float depth, which order as the depths do; INT_MAX, past all of them, when culled).
+   Work-item g projects the Gaussians [g TILE, (g + 1) TILE). */
 __kernel void project(const int n,
                       __global const float *means,      /* [N,3] world */
                       __global const float *quats,      /* [N,4] unit w,x,y,z */
@@ -141,7 +142,8 @@ __kernel void project(const int n,
                       const int width, const int height, const float near, const float far,
                       const int tiles_x, const int tiles_y,
                       __global float8 *splats, __global int *radii,
-                      __global int16 *footprints, __global int *tiles_touched) {
+                      __global int16 *footprints, __global int *tiles_touched,
+                      __global int *depth_keys) {
     const int i0 = get_global_id(0) * TILE;
     if (i0 >= n) return;
     const ewa_t e = ewa(i0, n, means, quats, scales, viewmat, fx, fy, cx, cy, width, height);
@@ -188,6 +190,7 @@ __kernel void project(const int n,
             radii[i] = 0;
             footprints[i] = (int16)(0);
             tiles_touched[i] = 0;
+            depth_keys[i] = INT_MAX;
             continue;
         }
         splats[i] = splat;
@@ -195,6 +198,7 @@ __kernel void project(const int n,
         vstore4(rect, 0, footprint);
         for (int k = 0; k < SPAN_ROWS / 8; k++) vstore8(vload8(k, rows), k, (__global ushort *)(footprint + 4));
         tiles_touched[i] = touched;
+        depth_keys[i] = as_int(LANE(e.pz, l));
     }
 }
 

@@ -64,8 +64,8 @@ def extreme():
     assert np.array_equal(cam.viewmat[:3, :3], np.eye(3))
     plan = rasterize_plan(means, quats, scales, opacities, cam.viewmat, cam.K, W, H)
     rt = runtime()
-    _, _, footprints, touched = project(rt, *(to_device(rt, a) for a in (means, quats, scales, opacities)),
-                                   cam.viewmat, cam.K, W, H, 0.01, 1e10)
+    _, _, footprints, touched, _ = project(rt, *(to_device(rt, a) for a in (means, quats, scales, opacities)),
+                                      cam.viewmat, cam.K, W, H, 0.01, 1e10)
     with np.errstate(all="ignore"):
         twin = project_ref.project(means, quats, scales, opacities, cam.viewmat, cam.K, W, H)
     return plan, plan.meta(), footprints.get().reshape(-1, 16)[:, :4], touched.get(), twin, expect

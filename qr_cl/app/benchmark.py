@@ -132,15 +132,14 @@ class Sweep:
             self._finish()
             return out
         self._row(scene, "projection", "-", 0, 0, measure(do_project, self.rounds))
-        splats, radii, footprints, touched = do_project()
+        proj = do_project()
 
         def bin_sort():
-            out = bin_and_sort(self.rt, splats, footprints, touched, cam.width, cam.height)
+            out = bin_and_sort(self.rt, proj, cam.width, cam.height)
             self._finish()
             return out
         self._row(scene, "binning+sort", "-", 0, 0, measure(bin_sort, self.rounds))
-        ranges, ids, n_keys = bin_sort()
-        return RasterPlan(self.rt, cam.width, cam.height, splats, radii, ranges, ids, n_keys)
+        return RasterPlan(self.rt, cam.width, cam.height, proj.splats, proj.radii, *bin_sort())
 
     def fused(self, scene: BenchScene, plan, channels: int) -> dict:
         """Time the fused V-Render of ``channels`` random features."""

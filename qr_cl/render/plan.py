@@ -18,6 +18,5 @@ def rasterize_plan(means: np.ndarray, quats: np.ndarray, scales: np.ndarray, opa
     """
     rt = rt or runtime()
     dev = [to_device(rt, a) for a in (means, quats, scales, opacities)]
-    splats, radii, footprints, touched = project(rt, *dev, viewmat, np.asarray(K), width, height, near, far)
-    ranges, ids, n_keys = bin_and_sort(rt, splats, footprints, touched, width, height)
-    return RasterPlan(rt, int(width), int(height), splats, radii, ranges, ids, n_keys)
+    proj = project(rt, *dev, viewmat, np.asarray(K), width, height, near, far)
+    return RasterPlan(rt, int(width), int(height), proj.splats, proj.radii, *bin_and_sort(rt, proj, width, height))

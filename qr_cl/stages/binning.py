@@ -19,7 +19,7 @@ import torch
 from pyopencl.algorithm import RadixSort
 
 from ..runtime import Runtime, device_empty, device_zeros, exclusive_scan, host_empty, last_value, to_device
-from .project import FOOTPRINT_INTS, tile_grid
+from .project import FOOTPRINT_INTS, Projection, tile_grid
 
 BIN_CHUNKS_PER_CORE = 4   # the CPU binning's work-items per compute unit
 PLAN_META_KEYS = ("means2d", "conics", "opacities", "depths", "radii", "tile_ranges", "flatten_ids",
@@ -163,54 +163,57 @@ def sort_pairs(rt: Runtime, keys: cla.Array, values: cla.Array, key_bits: int) -
     return sorted_keys, sorted_values
 
 
-def bin_and_sort(rt: Runtime, splats: cla.Array, footprints: cla.Array, touched: cla.Array,
-                 width: int, height: int) -> tuple[cla.Array, cla.Array, int]:
+def bin_and_sort(rt: Runtime, proj: Projection, width: int, height: int) -> tuple[cla.Array, cla.Array, int]:
     """Keys per (Gaussian, tile), sorted by tile then depth, from :func:`qr_cl.stages.project.project`.
 
     Returns (ranges [tiles,2], ids [max(M,1)], M) for M keys. GPU-shaped runtimes sort the M keys
     (:func:`sort_pairs`); CPU-shaped ones sort the N Gaussians by depth and then the pairs by tile
     (:func:`_bin_counted`): the same ids.
     """
-    n = touched.size
     tiles_x, tiles_y = tile_grid(width, height)
     n_tiles = tiles_x * tiles_y
+    if not rt.gpu_shaped:
+        return _bin_counted(rt, proj, tiles_x, n_tiles)
+    n, touched = proj.tiles_touched.size, proj.tiles_touched
     ranges = device_zeros(rt, (n_tiles, 2), np.int32)
     offsets = exclusive_scan(rt, touched, device_empty(rt, touched.shape, touched.dtype))
     m = last_value(offsets) + last_value(touched)
     if m == 0:
         return ranges, device_zeros(rt, 1, np.int32), 0
-    if not rt.gpu_shaped:
-        return _bin_counted(rt, splats, footprints, touched, tiles_x, n_tiles, m)
     keys = device_empty(rt, m, np.uint64)
     values = device_empty(rt, m, np.int32)
-    rt.launch("emit_keys", n, n=n, footprints=footprints, offsets=offsets, splats=splats, tiles_x=tiles_x,
-              keys=keys, values=values)
+    rt.launch("emit_keys", n, n=n, footprints=proj.footprints, offsets=offsets, splats=proj.splats,
+              tiles_x=tiles_x, keys=keys, values=values)
     key_bits = 32 + max(1, int(n_tiles - 1).bit_length())
     keys, ids = sort_pairs(rt, keys, values, key_bits)
     rt.launch("tile_ranges", m, m=m, keys=keys, ranges=ranges)
     return ranges, ids, m
 
 
-def _bin_counted(rt: Runtime, splats: cla.Array, footprints: cla.Array, touched: cla.Array,
-                 tiles_x: int, n_tiles: int, m: int) -> tuple[cla.Array, cla.Array, int]:
-    """CPU-shaped binning: the touching Gaussians sorted by depth on the host (torch's stable sort
-    of N keys instead of M), then their M (Gaussian, tile) pairs by a stable counting sort by tile
-    (bin_count / bin_fill). Each tile's list is by depth, then index, as the key sort gives it.
-    Measured on the 300k-Gaussian dense room (3.7M pairs), projection included: 105 -> 39 ms."""
-    hit = np.flatnonzero(_get(touched) > 0)
-    depth_bits = _get(splats).reshape(-1, 8)[hit, 6].view(np.int32)   # positive floats: order kept
-    by_depth = torch.sort(torch.from_numpy(depth_bits), stable=True)[1].numpy()
-    order = to_device(rt, hit[by_depth], np.int32)
-    n, chunks = len(hit), max(1, min(len(hit), BIN_CHUNKS_PER_CORE * rt.device.max_compute_units))
+def _bin_counted(rt: Runtime, proj: Projection, tiles_x: int, n_tiles: int) -> tuple[cla.Array, cla.Array, int]:
+    """CPU-shaped binning: the Gaussians sorted by depth key on the host (torch's stable sort of N
+    keys instead of M pairs; the culled ones, keyed INT32_MAX, come last and are cut off), then
+    their M (Gaussian, tile) pairs by a stable counting sort by tile (bin_count / bin_fill). Each
+    tile's list is by depth, then index, as the key sort gives it. No scan of the tiles touched:
+    M is the histogram's total. Measured on the 300k-Gaussian dense room (3.7M pairs), projection
+    included: 105 -> 39 ms."""
+    keys = torch.from_numpy(_get(proj.depth_keys))
+    sorted_keys, by_depth = torch.sort(keys, stable=True)
+    n = int(torch.searchsorted(sorted_keys, np.iinfo(np.int32).max))
+    if n == 0:
+        return device_zeros(rt, (n_tiles, 2), np.int32), device_zeros(rt, 1, np.int32), 0
+    order = to_device(rt, by_depth[:n].numpy(), np.int32)
+    chunks = max(1, min(n, BIN_CHUNKS_PER_CORE * rt.device.max_compute_units))
     sorted_footprints = device_empty(rt, (n, FOOTPRINT_INTS), np.int32)
-    rt.launch("gather_footprints", n, n=n, order=order, footprints=footprints, sorted=sorted_footprints)
+    rt.launch("gather_footprints", n, n=n, order=order, footprints=proj.footprints, sorted=sorted_footprints)
     args = dict(n=n, per=-(-n // chunks), n_chunks=chunks, order=order, sorted=sorted_footprints,
-                splats=splats, tiles_x=tiles_x)
+                splats=proj.splats, tiles_x=tiles_x)
     hist = device_zeros(rt, n_tiles * chunks, np.int32)
     rt.launch("bin_count", chunks, local_size=(1,), **args, n_tiles=n_tiles, hist=hist)
     counts = hist.get()
     ends = np.cumsum(counts, dtype=np.int64)
-    ids = device_empty(rt, m, np.int32)
+    m = int(ends[-1])
+    ids = device_empty(rt, m, np.int32)            # m >= n: each Gaussian kept touches a tile
     rt.launch("bin_fill", chunks, local_size=(1,), **args, cursor=to_device(rt, ends - counts, np.int32), ids=ids)
     tile_ends = ends[chunks - 1::chunks]
     tile_starts = tile_ends - counts.reshape(n_tiles, chunks).sum(1)

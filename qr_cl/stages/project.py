@@ -2,6 +2,8 @@
 work-item (as SIMD lanes), EWA with the 0.3 px low-pass of 3DGS. Twin: :mod:`qr_cl.stages.project_ref`."""
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 import pyopencl.array as cla
 
@@ -23,29 +25,38 @@ def lane_items(n: int) -> int:
     return -(-n // (TILE * BLOCK_GROUP[0])) * BLOCK_GROUP[0]
 
 
-def project(rt: Runtime, means: cla.Array, quats: cla.Array, scales: cla.Array, opacities: cla.Array,
-            viewmat: np.ndarray, K: np.ndarray, width: int, height: int, near: float, far: float
-            ) -> tuple[cla.Array, cla.Array, cla.Array, cla.Array]:
-    """Run project.cl on device arrays means [N,3], quats [N,4] (unit w,x,y,z), scales [N,3],
-    opacities [N] (activated), for viewmat [4,4] world-to-camera and K [3,3] (px).
+class Projection(NamedTuple):
+    """The outputs of :func:`project`, device arrays over the N Gaussians: splats [N,8] float32
+    (mean2d x, y px; conic a, b, c; opacity; depth; sigma_max), radii [N] int32 (0 = culled),
+    footprints [N, FOOTPRINT_INTS] int32 (the tile rectangle [x0, y0, x1, y1), then the tiles of its
+    rows that the blend ellipse reaches, packed: see spans_stored in kernels/common.h),
+    tiles_touched [N] int32 (the tiles of those rows) and depth_keys [N] int32 (the bits of the
+    positive float32 depth, ordered as the depths; INT32_MAX for culled Gaussians)."""
 
-    Returns splats [N,8] (mean2d x, y px; conic a, b, c; opacity; depth; sigma_max), radii [N] int32
-    (0 = culled), footprints [N, FOOTPRINT_INTS] int32 (the tile rectangle [x0, y0, x1, y1), then
-    the tiles of its rows that the blend ellipse reaches, packed: see spans_stored in
-    kernels/common.h) and tiles_touched [N] int32 (the tiles of those rows).
-    """
+    splats: cla.Array
+    radii: cla.Array
+    footprints: cla.Array
+    tiles_touched: cla.Array
+    depth_keys: cla.Array
+
+
+def project(rt: Runtime, means: cla.Array, quats: cla.Array, scales: cla.Array, opacities: cla.Array,
+            viewmat: np.ndarray, K: np.ndarray, width: int, height: int, near: float, far: float) -> Projection:
+    """Run project.cl on device arrays means [N,3], quats [N,4] (unit w,x,y,z), scales [N,3],
+    opacities [N] (activated), for viewmat [4,4] world-to-camera and K [3,3] (px), near/far planes
+    (camera z, world units)."""
     n = means.shape[0]
     tiles_x, tiles_y = tile_grid(width, height)
     splats = device_empty(rt, (n, 8), np.float32)
     radii = device_empty(rt, n, np.int32)
     footprints = device_empty(rt, (n, FOOTPRINT_INTS), np.int32)
-    touched = device_empty(rt, n, np.int32)
+    touched, depth_keys = device_empty(rt, n, np.int32), device_empty(rt, n, np.int32)
     rt.launch("project", lane_items(n), local_size=BLOCK_GROUP, n=n, means=means, quats=quats, scales=scales, opacities=opacities,
               viewmat=to_device(rt, np.asarray(viewmat).reshape(16)),
               fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], width=width, height=height,
               near=near, far=far, tiles_x=tiles_x, tiles_y=tiles_y,
-              splats=splats, radii=radii, footprints=footprints, tiles_touched=touched)
-    return splats, radii, footprints, touched
+              splats=splats, radii=radii, footprints=footprints, tiles_touched=touched, depth_keys=depth_keys)
+    return Projection(splats, radii, footprints, touched, depth_keys)
 
 
 def project_backward(rt: Runtime, means: cla.Array, quats: cla.Array, scales: cla.Array, radii: cla.Array,
