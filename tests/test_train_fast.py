@@ -168,3 +168,34 @@ def test_cosine_logits_match_normalize_and_its_gradient():
     torch.testing.assert_close(mine.grad, ref.grad, rtol=1e-10, atol=1e-12)
     with pytest.raises(ValueError, match="split"):
         cosine_logits(mine, [4, 4], masks[:2], 0.1)
+
+
+FREED_AND_AGAIN = """
+import resource, sys
+import numpy as np
+from qr_cl.app.model import keep_freed_memory
+if sys.argv[1] == "keep" and not keep_freed_memory():
+    print("no mallopt")
+    sys.exit(0)
+np.ones(16 << 20, np.float32)                 # 64 MB allocated, touched, freed
+before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+np.ones(16 << 20, np.float32)                 # the same again
+print(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
+"""
+
+
+def test_freed_memory_is_reused_without_page_faults():
+    """keep_freed_memory (the CLI's train, demo and reproduce call it): a 64 MB array freed and
+    allocated again reuses the pages (no faults), where by default it is a fresh mmap faulted in
+    again (at least one fault per 2 MB huge page). Child processes: it changes the process."""
+    import subprocess
+    import sys
+
+    def faults(mode: str) -> str:
+        return subprocess.run([sys.executable, "-c", FREED_AND_AGAIN, mode], capture_output=True, text=True,
+                              check=True).stdout.strip()
+    kept = faults("keep")
+    if kept == "no mallopt":
+        pytest.skip("the C library has no mallopt (not glibc)")
+    assert int(faults("default")) >= 32
+    assert int(kept) <= 4

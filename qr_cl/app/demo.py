@@ -31,7 +31,7 @@ from .baseline import fit_free_features
 from .data import load_scene_folder
 from .evaluate import (evaluate_features, ground_truth, markdown_table, network_features, reached_gaussians,
                        write_visuals)
-from .model import cap_kernel_threads, torch_threads
+from .model import cap_kernel_threads, keep_freed_memory, torch_threads
 from .synthetic import STYLES, SyntheticConfig, synthetic_scene
 from .train import TrainConfig, train
 
@@ -71,6 +71,7 @@ def run(args: argparse.Namespace) -> int:
     """Run the demo (module docstring) and print where the report is."""
 
     cap_kernel_threads()                      # before the first render (scene generation)
+    keep_freed_memory()
     t0 = time.perf_counter()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

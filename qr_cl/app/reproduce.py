@@ -48,7 +48,7 @@ from .data import SceneData, load_scene_folder
 from .evaluate import evaluate_features, ground_truth, network_features, reached_gaussians
 from .images import plot_transmittance_profiles, plt, save_image_grid
 from .metrics import SUBSETS
-from .model import cap_kernel_threads, torch_threads
+from .model import cap_kernel_threads, keep_freed_memory, torch_threads
 from .synthetic import SyntheticConfig, build_folder, synthetic_scene
 from .timing import measure
 from .train import TrainConfig, train
@@ -758,6 +758,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """``qr-cl reproduce``: run the plan and print the report's path and claims."""
     cap_kernel_threads()                      # before the first render (scene generation)
+    keep_freed_memory()
     mode = "smoke" if args.smoke else "quick" if args.quick else "full"
     out = Path(args.out)
     results = run_reproduction(PLANS[mode], mode, out, Path(args.cache) if args.cache else None,

@@ -53,7 +53,7 @@ from ..runtime import SAMPLERS
 from ..stages import prepare_backward
 from .data import load_scene_folder
 from .loss import StepRays, ViewSelections, rays_loss, step_rays
-from .model import NETS, build_net, cap_kernel_threads, process_cores, torch_threads
+from .model import NETS, build_net, cap_kernel_threads, keep_freed_memory, process_cores, torch_threads
 
 @dataclass
 class TrainConfig:
@@ -321,6 +321,7 @@ def run(args: argparse.Namespace) -> int:
     if world > 1:
         dist.init_process_group("gloo")
     cap_kernel_threads()
+    keep_freed_memory()
     try:
         with torch_threads(args.torch_threads):
             trainer = train(config_from_args(args), args.resume, rank, world)
