@@ -92,6 +92,8 @@ static inline ewa_t ewa(int i0, int n, __global const float *means, __global con
     return e;
 }
 
+/* Lane l of e into *s (through a pointer: a struct of this size returned by value made LLVM emit
+   llvm.experimental.noalias.scope.decl when inlining, which Debian's oclgrind cannot run). */
 static inline void ewa_lane(const ewa_t *e, int l, ewa1_t *s) {
     s->p = (float3)(LANE(e->px, l), LANE(e->py, l), LANE(e->pz, l));
     for (int k = 0; k < 9; k++) {
