@@ -51,8 +51,8 @@ def project(rt: Runtime, means: cla.Array, quats: cla.Array, scales: cla.Array, 
     radii = device_empty(rt, n, np.int32)
     footprints = device_empty(rt, (n, FOOTPRINT_INTS), np.int32)
     touched, depth_keys = device_empty(rt, n, np.int32), device_empty(rt, n, np.int32)
-    rt.launch("project", lane_items(n), local_size=BLOCK_GROUP, n=n, means=means, quats=quats, scales=scales, opacities=opacities,
-              viewmat=to_device(rt, np.asarray(viewmat).reshape(16)),
+    rt.launch("project", lane_items(n), local_size=BLOCK_GROUP, n=n, means=means, quats=quats, scales=scales,
+              opacities=opacities, viewmat=to_device(rt, np.asarray(viewmat).reshape(16)),
               fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], width=width, height=height,
               near=near, far=far, tiles_x=tiles_x, tiles_y=tiles_y,
               splats=splats, radii=radii, footprints=footprints, tiles_touched=touched, depth_keys=depth_keys)

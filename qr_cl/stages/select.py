@@ -26,8 +26,8 @@ import pyopencl as cl
 import pyopencl.array as cla
 from pyopencl.scan import InclusiveScanKernel
 
-from ..runtime import (BLOCK_GROUP, SAMPLERS, TILE, check_buffer, device_empty, device_zeros, exclusive_scan, last_value,
-                       to_device)
+from ..runtime import (BLOCK_GROUP, SAMPLERS, TILE, check_buffer, device_empty, device_zeros, exclusive_scan,
+                       last_value, to_device)
 from .binning import RasterPlan, sort_pairs
 
 CHUNKS_PER_CORE = 4          # the CPU transpose splits the rays into this many chunks per compute unit

@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pyopencl.array as cla
 
-from ..runtime import (BLOCK_GROUP, TILE, channel_layout, check_buffer, device_empty, host_empty, host_output, padded_vector,
-                       streamed, to_device)
+from ..runtime import (BLOCK_GROUP, TILE, channel_layout, check_buffer, device_empty, host_empty, host_output,
+                       padded_vector, streamed, to_device)
 from .binning import RasterPlan
 
 
