@@ -186,7 +186,6 @@ __kernel void project(const int n,
                                       LANE(opacity, l), LANE(e.pz, l), LANE(sigma_max, l));
         ushort rows[SPAN_ROWS] = {0};
         const int touched = LANE_I(visible, l) ? touched_tiles(splat, rect, tiles_x, rows) : 0;
-        __global int *footprint = (__global int *)(footprints + i);
         if (touched <= 0) {
             splats[i] = (float8)(0.f);
             radii[i] = 0;
@@ -197,6 +196,7 @@ __kernel void project(const int n,
         }
         splats[i] = splat;
         radii[i] = (int)fmin(LANE(radius, l), RADIUS_MAX);
+        __global int *footprint = (__global int *)(footprints + i);
         vstore4(rect, 0, footprint);
         for (int k = 0; k < SPAN_ROWS / 8; k++) vstore8(vload8(k, rows), k, (__global ushort *)(footprint + 4));
         tiles_touched[i] = touched;
