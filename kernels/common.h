@@ -307,11 +307,19 @@ static inline int spans_stored(int4 rect) { return rect.w - rect.y <= SPAN_ROWS 
 #if VW == 1
 typedef float vec_t;
 #define VLOAD(i, p) ((p)[i])
-#define VSTORE(v, i, p) ((p)[i] = (v))
+#define VSTORE_ANY(v, i, p) ((p)[i] = (v))
+#define VSTORE(v, i, p) VSTORE_ANY(v, i, p)
 #else
 typedef CAT(float, VW) vec_t;
 #define VLOAD(i, p) CAT(vload, VW)(i, p)
-#define VSTORE(v, i, p) CAT(vstore, VW)(v, i, p)
+#define VSTORE_ANY(v, i, p) CAT(vstore, VW)(v, i, p)   /* any alignment */
+/* A store through a vec_t pointer where the address is aligned to vec_t (rows and buffers
+   normally are): PoCL's vstoreN of a float16 writes it as four 16-byte pieces. */
+#define VSTORE(v, i, p) do { \
+        __global vec_t *at_ = (__global vec_t *)((p) + (i) * VW); \
+        if (((size_t)at_ & (sizeof(vec_t) - 1)) == 0) *at_ = (v); \
+        else VSTORE_ANY(v, i, p); \
+    } while (0)
 #endif
 
 /* VSTREAM(v, i, p): VSTORE of an output that the kernel does not read again, as a non-temporal
@@ -328,7 +336,7 @@ typedef CAT(float, VW) vec_t;
 #define VSTREAM(v, i, p) do { \
         __global vec_t *at_ = (__global vec_t *)((p) + (i) * VW); \
         if (((size_t)at_ & (sizeof(vec_t) - 1)) == 0) __builtin_nontemporal_store((v), at_); \
-        else VSTORE(v, i, p); \
+        else VSTORE_ANY(v, i, p); \
     } while (0)
 #else
 #define VSTREAM(v, i, p) VSTORE(v, i, p)
