@@ -86,9 +86,12 @@ def blend_backward(sel: Selection, dimage: cla.Array, channels: int, out: cla.Ar
     dfeatures = device_empty(rt, (sel.n_gaussians, cstride), np.float32) if out is None else out
     _check_rows(dfeatures, sel.n_gaussians, cstride, "out")
     if scatters(sel):
-        owners = owner_bounds(sel, OWNERS_PER_CORE * rt.device.max_compute_units)
-        rt.launch("blend_backward_scatter", len(owners) - 1, defines={"VW": vw, "NV": nv}, local_size=(1,),
-                  n_owners=len(owners) - 1, bounds=to_device(rt, owners, np.int32), n_rays=sel.n_rays,
+        n_owners = OWNERS_PER_CORE * rt.device.max_compute_units
+        if n_owners not in sel.owners:
+            sel.owners[n_owners] = to_device(rt, owner_bounds(sel, n_owners), np.int32)
+        bounds = sel.owners[n_owners]
+        rt.launch("blend_backward_scatter", bounds.size - 1, defines={"VW": vw, "NV": nv}, local_size=(1,),
+                  n_owners=bounds.size - 1, bounds=bounds, n_rays=sel.n_rays,
                   offsets=sel.offsets, count=sel.count, sel_ids=sel.ids, sel_w=sel.weights, dimage=dimage,
                   cstride=cstride, touched=device_zeros(rt, max(sel.n_gaussians, 1), np.uint8),
                   dfeatures=dfeatures)

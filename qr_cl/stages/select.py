@@ -57,7 +57,8 @@ class Selection:
     transmittance where the ray's walk stopped, ``t_sel`` the transmittance among the selected
     Gaussians before normalization (T^Q; the final T for volume), ``t_rem`` the background weight.
     ``k`` is K (0 for volume); ``n_gaussians`` is N of the plan. ``transposed`` caches
-    :meth:`transpose` (the blend backward's view of the selection).
+    :meth:`transpose` (the blend backward's view of the selection); ``owners`` the backward
+    scatter's owner bounds by number of owners (:func:`qr_cl.stages.blend.owner_bounds`).
     """
 
     plan: RasterPlan
@@ -73,6 +74,7 @@ class Selection:
     t_rem: cla.Array
     transposed: Transpose | None = field(default=None, repr=False)
     order: cla.Array | None = field(default=None, repr=False)
+    owners: dict = field(default_factory=dict, repr=False)
 
     @property
     def n_rays(self) -> int:
@@ -84,9 +86,10 @@ class Selection:
 
     @property
     def nbytes(self) -> int:
-        """Device bytes held by the selection (and its cached transpose)."""
+        """Device bytes held by the selection (and its cached transpose and owner bounds)."""
         arrays = [self.ids, self.weights, self.offsets, self.count, self.t_walk, self.t_sel, self.t_rem]
         arrays += [a for a in (*(self.transposed or ()), self.order) if isinstance(a, cla.Array)]
+        arrays += list(self.owners.values())
         return sum(a.nbytes for a in arrays)
 
     def launch(self) -> tuple[int, int]:
