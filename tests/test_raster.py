@@ -139,6 +139,20 @@ def test_binning_of_tall_tilted_ellipses_matches_reference():
     assert plan.n_keys < 0.8 * rect_pairs
 
 
+def test_host_sort_is_stable_and_restores_torchs_thread_count():
+    """The binning's host sort equals numpy's stable argsort (ties keep their index order) and
+    leaves torch's thread count as it found it, also when the sort fails."""
+    from qr_cl.stages.binning import host_sort
+    keys = torch.from_numpy(np.random.default_rng(0).integers(0, 50, 10_000).astype(np.int32))
+    threads = torch.get_num_threads()
+    sorted_keys, order = host_sort(keys)
+    np.testing.assert_array_equal(order.numpy(), np.argsort(keys.numpy(), kind="stable"))
+    np.testing.assert_array_equal(sorted_keys.numpy(), np.sort(keys.numpy()))
+    with pytest.raises(RuntimeError):
+        host_sort(keys, out=(torch.empty(3, dtype=torch.float64), torch.empty(3, dtype=torch.int64)))
+    assert torch.get_num_threads() == threads
+
+
 @pytest.mark.parametrize("channels", [1, 3, 5, 64, 512])
 def test_vrender_matches_reference(channels):
     g, cam = hostile_scene(seed=channels), origin_camera()

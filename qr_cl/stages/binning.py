@@ -7,6 +7,7 @@ every channel count and sampler. Twin: :mod:`qr_cl.stages.binning_ref`.
 """
 from __future__ import annotations
 
+import threading
 import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -137,11 +138,31 @@ def device_sort_works(context: cl.Context) -> bool:
     return ok
 
 
+_SORT_THREADS = threading.Lock()
+
+
+def host_sort(keys: torch.Tensor, out: tuple[torch.Tensor, torch.Tensor] | None = None
+              ) -> tuple[torch.Tensor, torch.Tensor]:
+    """(sorted keys, int64 order) of a 1-D tensor by torch's stable sort, run on the calling
+    thread alone. torch's OpenMP team gains little on N <= millions of keys, and its threads then
+    spin-wait for more work (libgomp's default) while the next kernels want every core: the fox's
+    K=10 render at 640x480 x 512 took 29.5 ms with the team, 26.6 ms without (its selection
+    kernel, right after the sort, 13.2 -> 11.0 ms). The thread count is torch's global setting,
+    so it is swapped under a lock and always restored."""
+    with _SORT_THREADS:
+        threads = torch.get_num_threads()
+        torch.set_num_threads(1)
+        try:
+            return torch.sort(keys, stable=True, out=out)
+        finally:
+            torch.set_num_threads(threads)
+
+
 def sort_pairs(rt: Runtime, keys: cla.Array, values: cla.Array, key_bits: int) -> tuple[cla.Array, cla.Array]:
     """Sort (key, value) pairs by the low ``key_bits`` bits of the uint64 keys.
 
     On a CPU-shaped runtime the host is the device: the pairs are sorted on the host by torch's
-    stable sort (a radix sort for int64 keys; keys of at most 63 bits keep their order as int64),
+    stable sort (:func:`host_sort`; a radix sort for int64 keys; keys of at most 63 bits keep their order as int64),
     about 4-8x faster than numpy's stable argsort (a merge sort) and much faster than pyopencl's
     GPU-style RadixSort there (see bench/test_bench_binning.py); its outputs are pooled host
     arrays. On GPU-shaped ones (:attr:`qr_cl.runtime.Runtime.gpu_shaped`) pyopencl's RadixSort
@@ -153,8 +174,8 @@ def sort_pairs(rt: Runtime, keys: cla.Array, values: cla.Array, key_bits: int) -
         if key_bits > 63:
             raise ValueError(f"sort keys of {key_bits} bits: at most 63 are supported")
         sorted_keys, order = host_empty(keys.shape, np.uint64), host_empty(keys.shape, np.int64)
-        torch.sort(torch.from_numpy(host_keys.view(np.int64)), stable=True,
-                   out=(torch.from_numpy(sorted_keys.view(np.int64)), torch.from_numpy(order)))
+        host_sort(torch.from_numpy(host_keys.view(np.int64)),
+                  out=(torch.from_numpy(sorted_keys.view(np.int64)), torch.from_numpy(order)))
         host_values = _get(values)
         return to_device(rt, sorted_keys, np.uint64), to_device(
             rt, np.take(host_values, order, out=host_empty(values.shape, values.dtype)), np.int32)
@@ -191,14 +212,14 @@ def bin_and_sort(rt: Runtime, proj: Projection, width: int, height: int) -> tupl
 
 
 def _bin_counted(rt: Runtime, proj: Projection, tiles_x: int, n_tiles: int) -> tuple[cla.Array, cla.Array, int]:
-    """CPU-shaped binning: the Gaussians sorted by depth key on the host (torch's stable sort of N
+    """CPU-shaped binning: the Gaussians sorted by depth key on the host (:func:`host_sort` of N
     keys instead of M pairs; the culled ones, keyed INT32_MAX, come last and are cut off), then
     their M (Gaussian, tile) pairs by a stable counting sort by tile (bin_count / bin_fill). Each
     tile's list is by depth, then index, as the key sort gives it. No scan of the tiles touched:
     M is the histogram's total. Measured on the 300k-Gaussian dense room (3.7M pairs), projection
     included: 105 -> 39 ms."""
     keys = torch.from_numpy(_get(proj.depth_keys))
-    sorted_keys, by_depth = torch.sort(keys, stable=True)
+    sorted_keys, by_depth = host_sort(keys)
     n = int(torch.searchsorted(sorted_keys, np.iinfo(np.int32).max))
     if n == 0:
         return device_zeros(rt, (n_tiles, 2), np.int32), device_zeros(rt, 1, np.int32), 0
