@@ -8,6 +8,7 @@ from qr_cl.render import rasterize_plan
 from qr_cl.runtime import runtime, to_device
 from qr_cl.scene import Gaussians, look_at, orbit_cameras
 from qr_cl.stages import binning_ref, project_ref, sh_colors, sh_ref, vrender_ref
+from qr_cl.stages.binning import host_sort
 
 W, H = 96, 72
 
@@ -142,7 +143,6 @@ def test_binning_of_tall_tilted_ellipses_matches_reference():
 def test_host_sort_is_stable_and_restores_torchs_thread_count():
     """The binning's host sort equals numpy's stable argsort (ties keep their index order) and
     leaves torch's thread count as it found it, also when the sort fails."""
-    from qr_cl.stages.binning import host_sort
     keys = torch.from_numpy(np.random.default_rng(0).integers(0, 50, 10_000).astype(np.int32))
     threads = torch.get_num_threads()
     sorted_keys, order = host_sort(keys)

@@ -162,8 +162,8 @@ def sort_pairs(rt: Runtime, keys: cla.Array, values: cla.Array, key_bits: int) -
     """Sort (key, value) pairs by the low ``key_bits`` bits of the uint64 keys.
 
     On a CPU-shaped runtime the host is the device: the pairs are sorted on the host by torch's
-    stable sort (:func:`host_sort`; a radix sort for int64 keys; keys of at most 63 bits keep their order as int64),
-    about 4-8x faster than numpy's stable argsort (a merge sort) and much faster than pyopencl's
+    stable sort (:func:`host_sort`; a radix sort for int64 keys; keys of at most 63 bits keep
+    their order as int64), about 4-8x faster than numpy's stable argsort (a merge sort) and much faster than pyopencl's
     GPU-style RadixSort there (see bench/test_bench_binning.py); its outputs are pooled host
     arrays. On GPU-shaped ones (:attr:`qr_cl.runtime.Runtime.gpu_shaped`) pyopencl's RadixSort
     runs on the device, once :func:`device_sort_works` has checked it there; all are stable, so the

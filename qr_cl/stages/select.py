@@ -74,7 +74,7 @@ class Selection:
     t_rem: cla.Array
     transposed: Transpose | None = field(default=None, repr=False)
     order: cla.Array | None = field(default=None, repr=False)
-    owners: dict = field(default_factory=dict, repr=False)
+    owners: dict[int, cla.Array] = field(default_factory=dict, repr=False)
 
     @property
     def n_rays(self) -> int:
