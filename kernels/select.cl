@@ -25,22 +25,31 @@ static inline void normalize_weights(__global float *w, int n) {
 /* The lanes cross of an Algorithm 1 walk take Gaussian g (alpha' a, transmittance after it
    T_test) as their next quantile Gaussian: entry (g, w^Q = T^Q alpha') in the lane's row, T^Q
    updated, and k advanced past every boundary T_test crossed (bound: the lane's next boundary,
-   BOUNDARY(k): its (k+1)-th). Rare: at most K times per ray. */
-#define TAKE_QUANTILES(cross, g, a, T_test, BOUNDARY) \
+   BOUNDARY(k): its (k+1)-th): to the first k' > k with T_test >= BOUNDARY(k'), searched from
+   FIRST(k + 1, T_test), a guess >= k + 1, down then up (the boundaries decrease with k, in float
+   too, so any guess gives that k'). Rare: at most K times per ray. */
+#define TAKE_QUANTILES(cross, g, a, T_test, BOUNDARY, FIRST) \
     FOR_LANES(cross, l) { \
         const size_t slot = (size_t)LANE_I(row, l) * K + LANE_I(n, l)++; \
         out_ids[slot] = g; \
         out_w[slot] = LANE(TQ, l) * LANE(a, l); \
         LANE(TQ, l) *= 1.f - LANE(a, l); \
-        int kl = LANE_I(k, l) + 1; \
+        const int k1 = LANE_I(k, l) + 1; \
+        int kl = FIRST(k1, LANE(T_test, l)); \
+        while (kl > k1 && !(LANE(T_test, l) < BOUNDARY(kl - 1))) kl--; \
         while (LANE(T_test, l) < BOUNDARY(kl)) kl++; \
         LANE_I(k, l) = kl; \
         LANE(bound, l) = BOUNDARY(kl); \
     }
 
-/* The boundaries of lane l: Q-Render's uniform ones, Stratified-K's from the lane's statistics. */
+/* The boundaries of lane l: Q-Render's uniform ones, Stratified-K's from the lane's statistics;
+   and where to start looking for the next one: for the uniform boundaries 1 - (k+1)/(K+1) the
+   k' of T_test in real arithmetic (a transmittance that drops through many boundaries at once
+   then costs a few divisions instead of one per boundary), else the next one. */
 #define UNIFORM(k) quantile_boundary(k, K)
+#define UNIFORM_FIRST(k1, T) max(k1, min(K, (int)((1.f - (T)) * (float)(K + 1)) - 1))
 #define STRATIFIED(k) stratified_boundary(k, K, LANE(mu, l), LANE(sigma, l), LANE(t_end, l))
+#define NEXT_FIRST(k1, T) (k1)
 
 /* Per lane of a block: normalize its n entries and write count, t_walk = T, t_sel = T^Q and
    t_rem (1 when nothing was selected). */
@@ -73,7 +82,7 @@ __kernel void select_quantile(BLOCK_ARGS, K_ROWS_ARGS) {
         if (!lanes_any(use)) continue;
         const lanef T_test = T * (1.f - a);
         const lanei cross = use & (T_test < bound);
-        if (lanes_any(cross)) TAKE_QUANTILES(cross, g, a, T_test, UNIFORM)
+        if (lanes_any(cross)) TAKE_QUANTILES(cross, g, a, T_test, UNIFORM, UNIFORM_FIRST)
         T = select(T, T_test, use);
         done |= use & (T_test < stop);
     }
@@ -142,7 +151,7 @@ __kernel void select_stratified(BLOCK_ARGS, K_ROWS_ARGS) {
         LANE(bound, l) = stratified_boundary(0, K, LANE(mu, l), LANE(sigma, l), LANE(t_end, l));
     VOLUME_WALK(range, px, py, row,                  /* pass 2: Algorithm 1, stratified boundaries */
         const lanei cross = use & (next_T < bound);
-        if (lanes_any(cross)) TAKE_QUANTILES(cross, g, a, next_T, STRATIFIED))
+        if (lanes_any(cross)) TAKE_QUANTILES(cross, g, a, next_T, STRATIFIED, NEXT_FIRST))
     finish_rows(row, n, T, TQ, K, out_w, count, t_walk, t_sel, t_rem);
 }
 
