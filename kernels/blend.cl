@@ -25,20 +25,25 @@ __kernel void blend(__global const int *offsets, __global const int *count,
     int p;
     if (!ray_row(get_global_id(0), full, n_rays, width, height, tiles_x, &p)) return;
     const int c0 = get_global_id(1) * NV * VW;
-    vec_t acc[NV];
-    for (int v = 0; v < NV; v++) acc[v] = (vec_t)(0.f);
     const int start = offsets[p], n = count[p];
-    for (int j = start; j < start + n; j++) {
-        const float w = sel_w[j];
-        __global const float *row = features + (size_t)sel_ids[j] * cstride + c0;
-        for (int v = 0; v < NV; v++) acc[v] += w * VLOAD(v, row);
-    }
-    __global float *out = image + (size_t)p * cstride + c0;
     const float tb = use_bg ? t_rem[p] : 0.f;
-    for (int v = 0; v < NV; v++) {
-        const vec_t bg = use_bg ? VLOAD(v, background + c0) : (vec_t)(0.f);
-        if (stream) VSTREAM(acc[v] + tb * bg, v, out);
-        else VSTORE(acc[v] + tb * bg, v, out);
+    for (int v0 = 0; v0 < NV; v0 += RV) {
+        vec_t acc[RV];
+        #pragma unroll
+        for (int v = 0; v < RV; v++) acc[v] = (vec_t)(0.f);
+        for (int j = start; j < start + n; j++) {
+            const float w = sel_w[j];
+            __global const float *row = features + (size_t)sel_ids[j] * cstride + c0 + v0 * VW;
+            #pragma unroll
+            for (int v = 0; v < RV; v++) acc[v] += w * VLOAD(v, row);
+        }
+        __global float *out = image + (size_t)p * cstride + c0 + v0 * VW;
+        #pragma unroll
+        for (int v = 0; v < RV; v++) {
+            const vec_t bg = use_bg ? VLOAD(v0 + v, background + c0) : (vec_t)(0.f);
+            if (stream) VSTREAM(acc[v] + tb * bg, v, out);
+            else VSTORE(acc[v] + tb * bg, v, out);
+        }
     }
 }
 
@@ -55,15 +60,20 @@ __kernel void blend_backward(const int n, __global const int *order,   /* [N] Ga
     const int c0 = get_global_id(1) * NV * VW;
     const int start = g ? cursor[g * n_chunks - 1] : 0;
     const int end = cursor[(g + 1) * n_chunks - 1];
-    vec_t acc[NV];
-    for (int v = 0; v < NV; v++) acc[v] = (vec_t)(0.f);
-    for (int j = start; j < end; j++) {
-        const float w = t_w[j];
-        __global const float *row = dimage + (size_t)t_ray[j] * cstride + c0;
-        for (int v = 0; v < NV; v++) acc[v] += w * VLOAD(v, row);
+    for (int v0 = 0; v0 < NV; v0 += RV) {
+        vec_t acc[RV];
+        #pragma unroll
+        for (int v = 0; v < RV; v++) acc[v] = (vec_t)(0.f);
+        for (int j = start; j < end; j++) {
+            const float w = t_w[j];
+            __global const float *row = dimage + (size_t)t_ray[j] * cstride + c0 + v0 * VW;
+            #pragma unroll
+            for (int v = 0; v < RV; v++) acc[v] += w * VLOAD(v, row);
+        }
+        __global float *out = dfeatures + (size_t)g * cstride + c0 + v0 * VW;
+        #pragma unroll
+        for (int v = 0; v < RV; v++) VSTORE(acc[v], v, out);
     }
-    __global float *out = dfeatures + (size_t)g * cstride + c0;
-    for (int v = 0; v < NV; v++) VSTORE(acc[v], v, out);
 }
 
 /* Backward scatter: work-item m owns the Gaussians [bounds[m], bounds[m + 1]). It walks every ray

@@ -2,10 +2,10 @@
 
    One work-item per block of TILE pixels (a row of a tile) walks the tile list once for all of
    them (the block walk of common.h). Gaussians that some pixel blends are buffered BATCH at a time
-   as (id, per-pixel weights) and then blended into each pixel's output row chunk by chunk, NV
-   vectors of VW channels per chunk, in depth order (a pixel's zero weights are skipped, so each
+   as (id, per-pixel weights) and then blended into each pixel's output row chunk by chunk, RV
+   vectors of VW channels per chunk held in registers, in depth order (a pixel's zero weights are skipped, so each
    pixel sums exactly its own contributions). Feature rows have cstride floats, a multiple of
-   VW * NV. */
+   VW * RV. */
 #include "common.h"
 
 #define BATCH 32
@@ -21,21 +21,26 @@ static inline void blend_batch(__global float *image, __global const float *feat
         if (LANE_I(row, l) < 0) continue;
         __global float *out = image + (size_t)LANE_I(row, l) * cstride;
         const float bg = LANE(bg_scale, l);
-        for (int c0 = 0; c0 < cstride; c0 += NV * VW) {
-            vec_t acc[NV];
-            for (int v = 0; v < NV; v++) acc[v] = init ? (vec_t)(0.f) : VLOAD(v, out + c0);
+        for (int c0 = 0; c0 < cstride; c0 += RV * VW) {
+            vec_t acc[RV];
+            #pragma unroll
+            for (int v = 0; v < RV; v++) acc[v] = init ? (vec_t)(0.f) : VLOAD(v, out + c0);
             for (int j = 0; j < count; j++) {
                 const float wj = LANE(w[j], l);
                 if (wj == 0.f) continue;
                 __global const float *f = features + (size_t)id[j] * cstride + c0;
-                for (int v = 0; v < NV; v++) acc[v] += wj * VLOAD(v, f);
+                #pragma unroll
+                for (int v = 0; v < RV; v++) acc[v] += wj * VLOAD(v, f);
             }
-            if (bg != 0.f)
-                for (int v = 0; v < NV; v++) acc[v] += bg * VLOAD(v, background + c0);
-            if (stream)
-                for (int v = 0; v < NV; v++) VSTREAM(acc[v], v, out + c0);
-            else
-                for (int v = 0; v < NV; v++) VSTORE(acc[v], v, out + c0);
+            if (bg != 0.f) {
+                #pragma unroll
+                for (int v = 0; v < RV; v++) acc[v] += bg * VLOAD(v, background + c0);
+            }
+            #pragma unroll
+            for (int v = 0; v < RV; v++) {
+                if (stream) VSTREAM(acc[v], v, out + c0);
+                else VSTORE(acc[v], v, out + c0);
+            }
         }
     }
 }

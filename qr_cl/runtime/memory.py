@@ -70,11 +70,12 @@ def check_channels(channels: int) -> None:
         raise ValueError(f"features have {channels} channels; 1..{MAX_CHANNELS} are supported")
 
 
-#: CPU shapes: the most vectors one work-item accumulates in private memory (512 floats: a
-#: whole 512-D row). Measured on PoCL (640x480, 512-D): 4 vectors a work-item -> 32 took the
-#: fox's Q-Render K=40 blend from 21.5-22.7 to 14.5-15.9 ms and the dense room's from 211-218 to
-#: 138-143 ms, and the fox's fused V-Render from 67 to 50 ms: each entry's id, weight and row
-#: address are read once per row instead of once per 64 floats.
+#: CPU shapes: the most vectors of a row one work-item blends (512 floats: a whole 512-D row;
+#: the kernels accumulate them RV = 16 vectors at a time in registers, kernels/common.h).
+#: Measured on PoCL (640x480, 512-D): 4 vectors a work-item -> 32 took the fox's Q-Render K=40
+#: blend from 21.5-22.7 to 14.5-15.9 ms and the dense room's from 211-218 to 138-143 ms, and the
+#: fox's fused V-Render from 67 to 50 ms: each entry's id, weight and row address are read once
+#: per row instead of once per 64 floats.
 CPU_ROW_VECTORS = 32
 
 
@@ -82,7 +83,7 @@ def channel_layout(channels: int, gpu_shaped: bool = False) -> tuple[int, int, i
     """(VW, NV, cstride) for ``channels`` feature channels.
 
     VW is the vector width of the kernels (16 from 16 channels up, else the next power of two),
-    NV the vectors a work-item accumulates in private memory (CPU shapes: the largest divisor of
+    NV the vectors of a row a work-item blends (CPU shapes: the largest divisor of
     the vector count up to CPU_ROW_VECTORS, so one work-item takes up to 512 floats of a row; GPU
     shapes: 1, so a work-item holds 16 accumulators and more work-items share a row), and cstride
     the padded row length in floats (a multiple of VW * NV; the same for both shapes).
