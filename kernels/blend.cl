@@ -24,27 +24,9 @@ __kernel void blend(__global const int *offsets, __global const int *count,
                     __global float *image) {               /* [P, cstride] */
     int p;
     if (!ray_row(get_global_id(0), full, n_rays, width, height, tiles_x, &p)) return;
-    const int c0 = get_global_id(1) * NV * VW;
-    const int start = offsets[p], n = count[p];
-    const float tb = use_bg ? t_rem[p] : 0.f;
-    for (int v0 = 0; v0 < NV; v0 += RV) {
-        vec_t acc[RV];
-        #pragma unroll
-        for (int v = 0; v < RV; v++) acc[v] = (vec_t)(0.f);
-        for (int j = start; j < start + n; j++) {
-            const float w = sel_w[j];
-            __global const float *row = features + (size_t)sel_ids[j] * cstride + c0 + v0 * VW;
-            #pragma unroll
-            for (int v = 0; v < RV; v++) acc[v] += w * VLOAD(v, row);
-        }
-        __global float *out = image + (size_t)p * cstride + c0 + v0 * VW;
-        #pragma unroll
-        for (int v = 0; v < RV; v++) {
-            const vec_t bg = use_bg ? VLOAD(v0 + v, background + c0) : (vec_t)(0.f);
-            if (stream) VSTREAM(acc[v] + tb * bg, v, out);
-            else VSTORE(acc[v] + tb * bg, v, out);
-        }
-    }
+    blend_entries(sel_ids + offsets[p], sel_w + offsets[p], count[p], features, cstride,
+                  get_global_id(1) * NV * VW, use_bg ? t_rem[p] : 0.f, background, use_bg, stream,
+                  image + (size_t)p * cstride);
 }
 
 /* Backward gather: dF[g, chunk] = sum over Gaussian g's transposed entries of w dImage[p, chunk],

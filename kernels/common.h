@@ -362,6 +362,33 @@ typedef CAT(float, VW) vec_t;
 #endif
 #endif
 
+/* out[c0, c0 + NV * VW) of one image row = sum over the n entries (ids[j], w[j]) of
+   w[j] features[ids[j], c0 ...] + tb * background[c0 ...] (the background only when use_bg),
+   summed in entry order RV vectors at a time; written with VSTREAM when stream. */
+static inline void blend_entries(__global const int *ids, __global const float *w, const int n,
+                                 __global const float *features, const int cstride, const int c0,
+                                 const float tb, __global const float *background, const int use_bg,
+                                 const int stream, __global float *out) {
+    for (int v0 = 0; v0 < NV; v0 += RV) {
+        const int c = c0 + v0 * VW;
+        vec_t acc[RV];
+        #pragma unroll
+        for (int v = 0; v < RV; v++) acc[v] = (vec_t)(0.f);
+        for (int j = 0; j < n; j++) {
+            const float wj = w[j];
+            __global const float *row = features + (size_t)ids[j] * cstride + c;
+            #pragma unroll
+            for (int v = 0; v < RV; v++) acc[v] += wj * VLOAD(v, row);
+        }
+        #pragma unroll
+        for (int v = 0; v < RV; v++) {
+            const vec_t bg = use_bg ? VLOAD(v, background + c) : (vec_t)(0.f);
+            if (stream) VSTREAM(acc[v] + tb * bg, v, out + c);
+            else VSTORE(acc[v] + tb * bg, v, out + c);
+        }
+    }
+}
+
 /* The sum of the VW lanes of v. */
 static inline float vec_sum(vec_t v) {
     float s = 0.f;

@@ -18,9 +18,38 @@ static inline void normalize_weights(__global float *w, int n) {
     for (int j = 0; j < n; j++) w[j] /= sum;
 }
 
+/* Built with -DBLEND_ROWS (and VW, NV), the K samplers' kernels also blend each ray of a block
+   right after selecting it: image row p = blend.cl's blend of the ray's entries (the same
+   bytes), read back while they are in cache, so the image is written while the next blocks are
+   selected. BLEND_ARGS are their extra arguments (as blend's), BLEND_LANES(row) the blend. */
+#ifdef BLEND_ROWS
+#define BLEND_ARGS , __global const float *features, const int cstride, \
+    __global const float *background, const int use_bg, const int stream, __global float *image
+#define BLEND_LANES(row) blend_lanes(row, K, out_ids, out_w, count, t_rem, features, cstride, \
+                                     background, use_bg, stream, image)
+
+static inline void blend_lanes(lanei row, int K, __global const int *ids, __global const float *w,
+                               __global const int *count, __global const float *t_rem,
+                               __global const float *features, int cstride,
+                               __global const float *background, int use_bg, int stream,
+                               __global float *image) {
+    for (int l = 0; l < TILE; l++) {
+        const int p = LANE_I(row, l);
+        if (p < 0) continue;
+        const size_t first = (size_t)p * K;
+        for (int c0 = 0; c0 < cstride; c0 += NV * VW)
+            blend_entries(ids + first, w + first, count[p], features, cstride, c0,
+                          use_bg ? t_rem[p] : 0.f, background, use_bg, stream, image + (size_t)p * cstride);
+    }
+}
+#else
+#define BLEND_ARGS
+#define BLEND_LANES(row)
+#endif
+
 /* The outputs of the samplers that select at most K Gaussians per ray (rows of K slots). */
 #define K_ROWS_ARGS const int K, __global int *out_ids, __global float *out_w, __global int *count, \
-    __global float *t_walk, __global float *t_sel, __global float *t_rem
+    __global float *t_walk, __global float *t_sel, __global float *t_rem BLEND_ARGS
 
 /* The lanes cross of a Stratified-K walk take Gaussian g (alpha' a, transmittance after it
    T_test) as their next quantile Gaussian: entry (g, w^Q = T^Q alpha') in the lane's row, T^Q
@@ -118,6 +147,7 @@ __kernel void select_quantile(BLOCK_ARGS, K_ROWS_ARGS) {
         done |= use & (T_test < stop);
     }
     finish_rows(row, n, T, TQ, K, out_w, count, t_walk, t_sel, t_rem);
+    BLEND_LANES(row);
 }
 
 /* Inverse of the standard normal CDF (Acklam's rational approximation; |Phi(x) - p| < 1e-4 p in
@@ -184,6 +214,7 @@ __kernel void select_stratified(BLOCK_ARGS, K_ROWS_ARGS) {
         const lanei cross = use & (next_T < bound);
         if (lanes_any(cross)) TAKE_QUANTILES(cross, g, a, next_T, STRATIFIED))
     finish_rows(row, n, T, TQ, K, out_w, count, t_walk, t_sel, t_rem);
+    BLEND_LANES(row);
 }
 
 /* Min-heap order of (weight, list position): the smaller weight, or on a tie the later
@@ -265,6 +296,7 @@ __kernel void select_topk(BLOCK_ARGS, K_ROWS_ARGS) {
         normalize_weights(hw, nl);
         count[p] = nl; t_walk[p] = LANE(T, l); t_sel[p] = TQ; t_rem[p] = nl ? 0.f : 1.f;
     }
+    BLEND_LANES(row);
 }
 
 /* V-Render selection, counting pass: entries per ray and the final T. */

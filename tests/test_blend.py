@@ -137,6 +137,31 @@ def test_pixel_subset_blend_equals_full_rows(plan):
     np.testing.assert_array_equal(sub, full[pixels[:, 1] * plan.width + pixels[:, 0]])
 
 
+@pytest.mark.parametrize("sampler", ["quantile", "topk", "stratified"])
+@pytest.mark.parametrize("channels,subset", [(3, False), (37, True), (512, False), (2048, True)])
+def test_deferred_selection_blended_in_its_kernel_equals_select_then_blend(plan, sampler, channels, subset):
+    """select(..., defer=True) followed by blend_forward runs the selection kernel with the blend
+    fused in (CPU shapes): the same selection and the same image bytes as the two kernels, also
+    with a background and for a pixel subset; ready() alone gives the same selection."""
+    rng = np.random.default_rng(channels)
+    features = device_rows(plan, rng.standard_normal((plan.splats.shape[0], channels)).astype(np.float32))
+    background = rng.standard_normal(channels).astype(np.float32)
+    pixels = rng.integers(0, [plan.width, plan.height], (300, 2)) if subset else None
+    eager = select(plan, sampler, 10, pixels)
+    want = blend_forward(eager, features, channels, background).get()
+    deferred = select(plan, sampler, 10, pixels, defer=True)
+    assert deferred.pending is not None
+    got = blend_forward(deferred, features, channels, background).get()
+    assert deferred.pending is None
+    np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(blend_forward(deferred, features, channels).get(),
+                                  blend_forward(eager, features, channels).get())
+    alone = select(plan, sampler, 10, pixels, defer=True).ready()
+    for sel in (deferred, alone):
+        for key, value in eager.host().items():
+            np.testing.assert_array_equal(sel.host()[key], value, err_msg=key)
+
+
 @pytest.mark.parametrize("shift", [0, 1, 4])
 def test_outputs_at_any_alignment(plan, shift, monkeypatch):
     """Blend and fused V-Render stream large images with non-temporal stores where a row's vectors

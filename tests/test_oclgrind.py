@@ -146,6 +146,15 @@ def exercise() -> None:
         qr_cl.render_volume_fused(*geo, sh, cam.viewmat, cam.K, W, H, sh_degree=degree)
         print(f"RGB from SH degree {degree}: ok", flush=True)
 
+    os.environ["QR_CL_LAUNCH"] = "cpu"         # CPU shapes: each K sampler with the blend fused in
+    for sampler in ("quantile", "topk", "stratified"):
+        for px, background in ((None, None), (pixels, bg)):
+            qr_cl.rasterize(*geo, feats, cam.viewmat, cam.K, W, H, sampler=sampler, k=4,
+                            background=background, pixels=px)
+            print(f"rasterize {sampler} CPU shapes (selection with the blend) pixels={px is not None}: ok",
+                  flush=True)
+    del os.environ["QR_CL_LAUNCH"]
+
     roofline.FMA_ITERS = 16                    # fma_peak's loop length (passed as -DITERS)
     roofline.fma_rate(rt, work_items=16, rounds=1)
     roofline.stream_bandwidth(rt, mib=1, rounds=1)

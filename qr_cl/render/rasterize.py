@@ -189,7 +189,7 @@ def rasterize(means, quats, scales, opacities, features, viewmat, K, width: int,
         def make():
             if not plans:
                 plans.append(scene.plan(width, height, near, far))
-            return select(plans[0], sampler, k, rays)
+            return select(plans[0], sampler, k, rays, defer=True)   # made by the first blend
         if cache is None:
             return make()
         return cache.get(selection_key(scene.means, scene.quats, scene.scales, scene.opacities, scene.viewmat,
@@ -223,7 +223,10 @@ def _render_rays(selection, rays: np.ndarray | None, width: int, height: int, sc
         return (_render_rays(selection, rays[:half], width, height, scene, groups)
                 + _render_rays(selection, rays[half:], width, height, scene, groups))
     bg = scene.background
-    cols = [blend(sel, scene.features[:, g], None if bg is None else bg[g]) for g in groups]
+    try:
+        cols = [blend(sel, scene.features[:, g], None if bg is None else bg[g]) for g in groups]
+    finally:
+        sel.ready()                          # made even if no blend ran (it may be cached)
     render = cols[0] if len(cols) == 1 else torch.cat(cols, 1)
     t_walk = sel.t_walk.get(ary=host_empty(sel.t_walk.shape, np.float32))
     alpha = np.subtract(1, t_walk[:sel.n_rays, None], out=host_empty((sel.n_rays, 1)))

@@ -43,7 +43,8 @@ def blend_forward(sel: Selection, features: cla.Array, channels: int,
     features: float32 [N, cstride] device rows (cstride from channel_layout(channels));
     background: [channels] or None (no background term); out: an optional float32 [P, cstride]
     device array to write into (else one from the runtime's memory pool).
-    Rays as in the Selection; for the full image row p = y * width + x.
+    Rays as in the Selection; for the full image row p = y * width + x. A deferred selection
+    (``select(..., defer=True)``) is made here by its kernel with this blend fused in.
     """
     rt = sel.plan.runtime
     vw, nv, cstride = channel_layout(channels, rt.gpu_shaped)
@@ -52,6 +53,13 @@ def blend_forward(sel: Selection, features: cla.Array, channels: int,
     image = device_empty(rt, (sel.n_rays, cstride), np.float32) if out is None else out
     _check_rows(image, sel.n_rays, cstride, "out")
     if sel.n_rays == 0:
+        return image
+    bg = dict(background=to_device(rt, padded_vector(background, channels, cstride)),
+              use_bg=background is not None, stream=streamed(image.nbytes))
+    if sel.pending is not None:
+        launch, sel.pending = sel.pending, None
+        launch(defines={"VW": vw, "NV": nv, "BLEND_ROWS": 1}, features=features, cstride=cstride,
+               image=image, **bg)
         return image
     size, full = sel.launch()
     plan = sel.plan
@@ -62,10 +70,7 @@ def blend_forward(sel: Selection, features: cla.Array, channels: int,
     rt.launch("blend", (size, n_chunks), defines={"VW": vw, "NV": nv}, local_size=local,
               offsets=sel.offsets, count=sel.count, sel_ids=sel.ids, sel_w=sel.weights,
               features=features, cstride=cstride, full=full, n_rays=sel.n_rays, width=plan.width,
-              height=plan.height,
-              tiles_x=plan.tiles_x, background=to_device(rt, padded_vector(background, channels, cstride)),
-              t_rem=sel.t_rem, use_bg=background is not None, stream=streamed(image.nbytes),
-              image=image)
+              height=plan.height, tiles_x=plan.tiles_x, t_rem=sel.t_rem, image=image, **bg)
     return image
 
 

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from functools import lru_cache
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 import numpy as np
 import pyopencl as cl
@@ -59,6 +59,8 @@ class Selection:
     ``k`` is K (0 for volume); ``n_gaussians`` is N of the plan. ``transposed`` caches
     :meth:`transpose` (the blend backward's view of the selection); ``owners`` the backward
     scatter's owner bounds by number of owners (:func:`qr_cl.stages.blend.owner_bounds`).
+    ``pending`` is the deferred selection kernel of ``select(..., defer=True)`` until it is
+    enqueued: by the first blend forward, fused with it, or by :meth:`ready`.
     """
 
     plan: RasterPlan
@@ -75,6 +77,15 @@ class Selection:
     transposed: Transpose | None = field(default=None, repr=False)
     order: cla.Array | None = field(default=None, repr=False)
     owners: dict[int, cla.Array] = field(default_factory=dict, repr=False)
+    pending: Callable[..., None] | None = field(default=None, repr=False)
+
+    def ready(self) -> Selection:
+        """Enqueue the deferred selection kernel, if it still is (see ``pending``); returns self.
+        Kernels and reads enqueued after this see the selection (the queue is in order)."""
+        if self.pending is not None:
+            launch, self.pending = self.pending, None
+            launch()
+        return self
 
     @property
     def n_rays(self) -> int:
@@ -272,11 +283,16 @@ def row_offsets(queue: cl.CommandQueue, n_rays: int, k: int) -> cla.Array:
     return cla.arange(queue, 0, n_rays * k, k, dtype=np.int32)
 
 
-def select(plan: RasterPlan, sampler: str = "quantile", k: int = 40, pixels=None) -> Selection:
-    """Run the selection kernel of ``sampler`` ("volume", "quantile" or "topk") with K = ``k``
-    (ignored by volume) for the whole image or the rays ``pixels`` [P,2] (x, y) in px.
+def select(plan: RasterPlan, sampler: str = "quantile", k: int = 40, pixels=None,
+           defer: bool = False) -> Selection:
+    """Run the selection kernel of ``sampler`` ("volume", "quantile", "topk" or "stratified") with
+    K = ``k`` (ignored by volume) for the whole image or the rays ``pixels`` [P,2] (x, y) in px.
 
     Cost is proportional to the number of rays (and their tile lists), not to width * height.
+    ``defer``: on CPU-shaped runtimes the K samplers' kernel is not enqueued yet but kept as the
+    Selection's ``pending`` launch, so that the first :func:`qr_cl.stages.blend.blend_forward`
+    runs it with the blend fused in (each ray blended right after it is selected: the same
+    selection and image); call :meth:`Selection.ready` before any other use.
     """
     k = check_sampler(sampler, k)
     rt = plan.runtime
@@ -304,9 +320,15 @@ def select(plan: RasterPlan, sampler: str = "quantile", k: int = 40, pixels=None
         check_buffer(rt, 4 * n_rays * k, f"the {sampler} selection of {n_rays} rays x K={k}")
         ids, weights = device_empty(rt, n_rays * k, np.int32), device_empty(rt, n_rays * k, np.float32)
         offsets = row_offsets(q, n_rays, k)
-        rt.launch(f"select_{sampler}", size, local_size=BLOCK_GROUP, **rays, K=k, out_ids=ids,
-                  out_w=weights, count=count,
-                  t_walk=t_walk, t_sel=t_sel, t_rem=t_rem)
+
+        def launch(defines: dict | None = None, **blend_args) -> None:
+            rt.launch(f"select_{sampler}", size, defines=defines, local_size=BLOCK_GROUP, **rays, K=k,
+                      out_ids=ids, out_w=weights, count=count, t_walk=t_walk, t_sel=t_sel, t_rem=t_rem,
+                      **blend_args)
+        if defer and not rt.gpu_shaped:
+            return Selection(plan, sampler, k, pixels, ids, weights, offsets, count, t_walk, t_sel, t_rem,
+                             pending=launch)
+        launch()
     return Selection(plan, sampler, k, pixels, ids, weights, offsets, count, t_walk, t_sel, t_rem)
 
 
