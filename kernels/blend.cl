@@ -39,23 +39,10 @@ __kernel void blend_backward(const int n, __global const int *order,   /* [N] Ga
                              const int cstride, __global float *dfeatures) {   /* [N, cstride] */
     if (get_global_id(0) >= n) return;
     const int g = order[get_global_id(0)];
-    const int c0 = get_global_id(1) * NV * VW;
     const int start = g ? cursor[g * n_chunks - 1] : 0;
     const int end = cursor[(g + 1) * n_chunks - 1];
-    for (int v0 = 0; v0 < NV; v0 += RV) {
-        vec_t acc[RV];
-        #pragma unroll
-        for (int v = 0; v < RV; v++) acc[v] = (vec_t)(0.f);
-        for (int j = start; j < end; j++) {
-            const float w = t_w[j];
-            __global const float *row = dimage + (size_t)t_ray[j] * cstride + c0 + v0 * VW;
-            #pragma unroll
-            for (int v = 0; v < RV; v++) acc[v] += w * VLOAD(v, row);
-        }
-        __global float *out = dfeatures + (size_t)g * cstride + c0 + v0 * VW;
-        #pragma unroll
-        for (int v = 0; v < RV; v++) VSTORE(acc[v], v, out);
-    }
+    blend_entries(t_ray + start, t_w + start, end - start, dimage, cstride, get_global_id(1) * NV * VW,
+                  0.f, dimage, 0, 0, dfeatures + (size_t)g * cstride);   /* no background */
 }
 
 /* Backward scatter: work-item m owns the Gaussians [bounds[m], bounds[m + 1]). It walks every ray
