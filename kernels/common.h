@@ -2,7 +2,8 @@
 
    The constants TILE (tile side in px), ALPHA_MIN (smaller alphas are skipped), ALPHA_MAX (alpha
    clamp), T_MIN (V-Render stops before T would drop to it) and the SH basis constants SH_C0,
-   SH_C1, SH_C2_0..4, SH_C3_0..6 are defined by the build (-D), from qr_cl/runtime/constants.py. */
+   SH_C1, SH_C2_0..4, SH_C3_0..6 are defined by the build (-D), from qr_cl/runtime/constants.py;
+   ACC_FLOATS (the floats of a row kept in registers, see RV) from the device, by Runtime. */
 #ifndef QR_CL_COMMON_H
 #define QR_CL_COMMON_H
 
@@ -342,20 +343,21 @@ typedef CAT(float, VW) vec_t;
 #define VSTREAM(v, i, p) VSTORE(v, i, p)
 #endif
 
-/* RV: the vectors of a row that a loop over entries accumulates at a time (the largest of 16, 8,
-   4, 2, 1 that divides NV), in fully unrolled loops so that the accumulators stay in registers
-   (16 float16 take half of AVX-512's 32). PoCL kept an array of NV accumulators indexed in a loop
-   on the stack: a load and a store of each per entry (perf annotate of blend). Chunks of RV
-   vectors took the dense room's Q-Render K=40 blend from 138 to 93 ms and its fused V-Render
-   blend from 1146 to 690 ms, the same bytes. */
+/* RV: the vectors of a row that a loop over entries accumulates at a time: the largest of 16, 8,
+   4, 2, 1 that divides NV with RV * VW <= ACC_FLOATS (the floats the device keeps in registers,
+   from the build), in fully unrolled loops so that the accumulators stay in registers. PoCL kept
+   an array of NV accumulators indexed in a loop on the stack: a load and a store of each per
+   entry (perf annotate of blend). Chunks of RV = 16 vectors took the dense room's Q-Render K=40
+   blend from 138 to 93 ms and its fused V-Render blend from 1146 to 690 ms on AVX-512, the same
+   bytes; on AVX2 (16 registers) 16 float16 accumulators spill again and RV = 4 is faster. */
 #ifdef NV
-#if NV % 16 == 0
+#if NV % 16 == 0 && 16 * VW <= ACC_FLOATS
 #define RV 16
-#elif NV % 8 == 0
+#elif NV % 8 == 0 && 8 * VW <= ACC_FLOATS
 #define RV 8
-#elif NV % 4 == 0
+#elif NV % 4 == 0 && 4 * VW <= ACC_FLOATS
 #define RV 4
-#elif NV % 2 == 0
+#elif NV % 2 == 0 && 2 * VW <= ACC_FLOATS
 #define RV 2
 #else
 #define RV 1

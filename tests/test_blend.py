@@ -83,6 +83,30 @@ def test_backward_bytes_do_not_depend_on_the_kernel(plan, monkeypatch, owners_pe
     assert np.abs(first).max() > 0
 
 
+@pytest.mark.parametrize("acc_floats", [16, 64, 256])
+def test_register_chunks_do_not_change_the_bytes(plan, monkeypatch, acc_floats):
+    """Blend, backward gather and fused V-Render accumulate a row RV vectors at a time, RV from
+    the device's register budget (ACC_FLOATS): 1, 4 or 16 float16 vectors give the same bytes."""
+    rng = np.random.default_rng(9)
+    features = device_rows(plan, rng.standard_normal((plan.splats.shape[0], 512)).astype(np.float32))
+    sel = select(plan, "quantile", 10)
+
+    def outputs():
+        image = blend_forward(sel, features, 512)
+        with monkeypatch.context() as m:
+            m.setattr(blend_stage, "scatters", lambda sel: False)
+            grad = blend_backward(sel, image, 512)
+        return image.get(), grad.get(), render_fused(plan, features, 512)[0]
+
+    want = outputs()
+    rt = plan.runtime
+    monkeypatch.setattr(type(rt), "accumulator_floats", property(lambda self: acc_floats))
+    monkeypatch.setattr(rt, "_programs", {})          # built again with the new ACC_FLOATS
+    for got, expected in zip(outputs(), want):
+        np.testing.assert_array_equal(got, expected)
+    assert np.abs(want[1]).max() > 0
+
+
 def test_owner_bounds_split_the_entries_evenly(plan, monkeypatch):
     """The scatter's owner ranges cover 0..N in order and hold about equal numbers of entries:
     each within one histogram bin's entries of total / owners."""

@@ -256,15 +256,26 @@ class Runtime:
         except cl.Error:
             return self.is_cpu
 
+    @property
+    def accumulator_floats(self) -> int:
+        """Floats of a feature row a blend loop keeps in registers at a time (``ACC_FLOATS`` of
+        kernels/common.h): about half the vector register file, from the native float vector
+        width: 16 lanes (AVX-512: 32 registers) give 256, 8 lanes (AVX2: 16 registers) 64, 4
+        lanes (SSE, NEON) 32. More spills the accumulators to the stack: on an AVX2 CPU (PoCL,
+        Zen 3) 256 floats made the dense room's K=40 blend 243 against 218-222 ms at 32-64."""
+        width = max(1, int(self.device.native_vector_width_float))
+        return width * width if width >= 8 else 8 * width
+
     def kernel(self, name: str, **defines: int | float) -> tuple[cl.Kernel, tuple[KernelArg, ...]]:
-        """The kernel ``name`` built with ``-D KEY=VALUE`` per define (and the shared constants),
-        with its declared arguments. Programs and kernel objects are cached."""
+        """The kernel ``name`` built with ``-D KEY=VALUE`` per define (and the shared constants
+        and ``ACC_FLOATS``, :attr:`accumulator_floats`), with its declared arguments. Programs
+        and kernel objects are cached."""
         file = kernel_files().get(name)
         if file is None:
             raise KeyError(f"no kernel named {name!r} in qr_cl.kernels")
         key = (file, tuple(sorted(defines.items())))
         if key not in self._programs:
-            constants = {**KERNEL_CONSTANTS, **defines}
+            constants = {**KERNEL_CONSTANTS, "ACC_FLOATS": self.accumulator_floats, **defines}
             options = ["-cl-kernel-arg-info"] + [f"-D{k}={v}" for k, v in sorted(constants.items())]
             program = cl.Program(self.context, kernel_source(file)).build(options=options)
             self._programs[key] = {k.function_name: (k, _declared_args(k)) for k in program.all_kernels()}
