@@ -1,0 +1,165 @@
+"""This checkout against another install of qr-cl (e.g. an earlier release in its own venv), back to back.
+
+The renderer's figures of issue 10, on the real fox (50k Gaussians; with ``--data``) and the
+300k-Gaussian dense room (``qr_cl.app.procedural.dense_room``), 640x480, each public call timed
+from its arguments to the image (plan included):
+
+* ``walk``: the fused V-Render of 3 channels (the tile walk, almost no blending);
+* ``fused``: the fused V-Render of 512 channels;
+* ``q40`` / ``q10``: Q-Render (``rasterize(..., sampler="quantile", k=K)``) of 512 channels;
+* ``train``: 4 renders of 2048 random rays (Q-Render K=40, 512-D features that require grad) and
+  the backward of their sum of squares;
+* minor page faults (``ru_minflt``) of a warm ``q40`` call.
+
+The scenes and cameras are made once by this checkout and handed to both installs as arrays, so
+both render the same Gaussians. Only public names are used (``qr_cl.rasterize``, and
+``qr_cl.render_volume_fused`` or, in releases before it, ``sampler="volume_fused"``)::
+
+    python -m venv /tmp/base && /tmp/base/bin/pip install torch==2.13.0 /path/to/old/checkout
+    python bench/release_ab.py --base /tmp/base/bin/python --data ../shared/data --rounds 2
+
+Each round runs the base, then this checkout, in fresh processes; the table gives the minimum
+over rounds and calls of each, the speed-up, and each build's fused V-Render over its Q-Render.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+WIDTH, HEIGHT, CHANNELS, DENSE_N = 640, 480, 512, 300_000
+VIEWS, RAYS = 4, 2048
+PATHS = ("walk", "fused", "q40", "q10", "train")
+
+
+def make_scenes(data: Path | None, out: Path) -> list[str]:
+    """Write the scenes' Gaussians and cameras to ``out`` (npz, keys ``<scene>/<array>``); their names."""
+    import qr_cl
+    from qr_cl.app.procedural import dense_room
+    scenes = {}
+    fox = None if data is None else data / "wakufactory-fox" / "fox.ply"
+    if fox is not None and fox.is_file():
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            g = qr_cl.load_ply(fox)
+        scenes["fox"] = (g, qr_cl.orbit_cameras(g.means, 8, WIDTH, HEIGHT)[1])
+    scenes["dense-room-300k"] = dense_room(DENSE_N, width=WIDTH, height=HEIGHT)
+    arrays = {}
+    for name, (g, cam) in scenes.items():
+        for key in ("means", "quats", "scales", "opacities"):
+            arrays[f"{name}/{key}"] = np.ascontiguousarray(getattr(g, key), np.float32)
+        arrays[f"{name}/viewmat"] = np.asarray(cam.viewmat, np.float32)
+        arrays[f"{name}/K"] = np.asarray(cam.K, np.float32)
+    np.savez(out, **arrays)
+    return list(scenes)
+
+
+def measure(scenes_file: Path, calls: int) -> dict:
+    """{scene: {path: {"min_s", "faults"}}} for the qr_cl this interpreter imports."""
+    import torch
+    import qr_cl
+    torch.set_num_threads(1)
+    fused = getattr(qr_cl, "render_volume_fused", None) or (
+        lambda *a: qr_cl.rasterize(*a, sampler="volume_fused"))
+    arrays = np.load(scenes_file)
+    names = sorted({k.split("/")[0] for k in arrays.files})
+    rng = np.random.default_rng(0)
+    results = {}
+    for name in names:
+        geo = [arrays[f"{name}/{k}"] for k in ("means", "quats", "scales", "opacities")]
+        cam = (arrays[f"{name}/viewmat"], arrays[f"{name}/K"], WIDTH, HEIGHT)
+        feats = torch.from_numpy(rng.random((len(geo[0]), CHANNELS), dtype=np.float32))
+        leaf = feats.clone().requires_grad_(True)
+        pixels = [rng.integers(0, (WIDTH, HEIGHT), (RAYS, 2)) for _ in range(VIEWS)]
+
+        def train():
+            leaf.grad = None
+            images = [qr_cl.rasterize(*geo, leaf, *cam, sampler="quantile", k=40, pixels=p)[0] for p in pixels]
+            torch.cat(images).square().sum().backward()
+
+        calls_of = {"walk": lambda: fused(*geo, feats[:, :3].contiguous(), *cam),
+                    "fused": lambda: fused(*geo, feats, *cam),
+                    "q40": lambda: qr_cl.rasterize(*geo, feats, *cam, sampler="quantile", k=40),
+                    "q10": lambda: qr_cl.rasterize(*geo, feats, *cam, sampler="quantile", k=10),
+                    "train": train}
+        results[name] = {}
+        for path in PATHS:
+            call, kept = calls_of[path], []
+            kept.append(call())                  # warm-up; results stay alive as in a render loop
+            times, faults = [], []
+            for _ in range(calls):
+                f0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+                t0 = time.perf_counter()
+                kept[0] = call()
+                times.append(time.perf_counter() - t0)
+                faults.append(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - f0)
+            results[name][path] = {"min_s": min(times), "faults": min(faults)}
+    return results
+
+
+def table(base: list[dict], this: list[dict], base_name: str) -> str:
+    """Markdown: minima over the runs of both installs, speed-ups and fused / Q-Render ratios."""
+    lines = [f"base = {base_name}; ms are minima over {len(this)} runs of each install",
+             "", "| scene | path | base ms | this ms | base / this |", "| --- | --- | ---: | ---: | ---: |"]
+    best = {}
+    for label, runs in (("base", base), ("this", this)):
+        for scene in runs[0]:
+            for path in PATHS:
+                best[label, scene, path] = min(r[scene][path]["min_s"] for r in runs) * 1e3
+                best[label, scene, "faults"] = min(r[scene]["q40"]["faults"] for r in runs)
+    scenes = list(this[0])
+    for scene in scenes:
+        for path in PATHS:
+            b, t = best["base", scene, path], best["this", scene, path]
+            lines.append(f"| {scene} | {path} | {b:.1f} | {t:.1f} | {b / t:.1f}x |")
+    lines += ["", "| scene | install | fused / q40 | fused / q10 | page faults per warm q40 |",
+              "| --- | --- | ---: | ---: | ---: |"]
+    for scene in scenes:
+        for label in ("base", "this"):
+            fused = best[label, scene, "fused"]
+            lines.append(f"| {scene} | {label} | {fused / best[label, scene, 'q40']:.2f}x | "
+                         f"{fused / best[label, scene, 'q10']:.2f}x | {best[label, scene, 'faults']} |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--base", metavar="PYTHON", help="the interpreter of the other install")
+    ap.add_argument("--data", type=Path, help="folder with wakufactory-fox/fox.ply (else the dense room alone)")
+    ap.add_argument("--rounds", type=int, default=2, help="runs of each install, alternating")
+    ap.add_argument("--calls", type=int, default=2, help="timed calls per path and run, after a warm-up")
+    ap.add_argument("--worker", type=Path, help=argparse.SUPPRESS)   # scenes file: measure, print JSON
+    args = ap.parse_args()
+    if args.worker:
+        print(json.dumps(measure(args.worker, args.calls)))
+        return
+    if not args.base:
+        ap.error("--base PYTHON is required")
+    with tempfile.TemporaryDirectory() as tmp:
+        scenes_file = Path(tmp) / "scenes.npz"
+        print("scenes:", ", ".join(make_scenes(args.data, scenes_file)), flush=True)
+        runs = {"base": [], "this": []}
+        for r in range(args.rounds):
+            for label, python in (("base", args.base), ("this", sys.executable)):
+                cmd = [python, __file__, "--worker", str(scenes_file), "--calls", str(args.calls)]
+                proc = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp)
+                if proc.returncode:
+                    sys.exit(f"{label} run failed ({' '.join(cmd)}):\n{proc.stderr[-3000:]}")
+                runs[label].append(json.loads(proc.stdout.strip().splitlines()[-1]))
+                print(f"round {r + 1} {label}: " + "; ".join(
+                    f"{s} " + " ".join(f"{p} {v['min_s'] * 1e3:.0f}" for p, v in paths.items())
+                    for s, paths in runs[label][-1].items()), flush=True)
+    print()
+    print(table(runs["base"], runs["this"], args.base))
+
+
+if __name__ == "__main__":
+    main()
