@@ -206,7 +206,7 @@ class Sweep:
         ``render_volume_fused`` for sampler "volume_fused"; and count the minor page faults of a
         warm call (``faults_per_call``, 0 when nothing is freshly allocated)."""
         g, cam = scene.gaussians, scene.camera
-        feats = np.random.default_rng(0).random((len(g), channels), dtype=np.float32)
+        feats = random_features(len(g), channels)
         args = (g.means, g.quats, g.scales, g.opacities, feats, cam.viewmat, cam.K, cam.width, cam.height)
         if sampler == "volume_fused":
             call = lambda: render_volume_fused(*args)  # noqa: E731
@@ -221,8 +221,7 @@ class Sweep:
         random pixels each (``rasterize`` with ``pixels``, the scene's camera) of [N, channels]
         features, forward and backward w.r.t. the features (loss: the images' sum of squares)."""
         g, cam = scene.gaussians, scene.camera
-        feats = torch.from_numpy(np.random.default_rng(0).random((len(g), channels), dtype=np.float32))
-        feats.requires_grad_(True)
+        feats = random_features(len(g), channels).requires_grad_(True)
         rng = np.random.default_rng(1)
 
         def call():
@@ -300,6 +299,15 @@ class Sweep:
         limit = max(flops / self.limits["fma_flops"], min_bytes / self.limits["bandwidth_bytes_s"])
         return {"bare_gather_s": self._bare[key], "fraction_of_bare_gather": self._bare[key] / seconds,
                 "fraction_of_roofline": limit / seconds}
+
+
+def random_features(n: int, channels: int) -> torch.Tensor:
+    """Random features [n, channels] in [0, 1) for the public calls, in torch's own memory as
+    GS-Net's outputs are: its rows start on 64-byte lines (large numpy arrays start 16 bytes past
+    one, which makes the blend's row loads straddle lines: the dense room's Q-Render K=40 end to
+    end 675 against 596 ms, README). The device-buffer stages are timed from aligned rows too."""
+    rows = torch.from_numpy(np.random.default_rng(0).random((n, channels), dtype=np.float32))
+    return torch.empty(n, channels).copy_(rows)
 
 
 def warm_page_faults(call, calls: int = 2) -> float:
