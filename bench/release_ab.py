@@ -76,7 +76,9 @@ def measure(scenes_file: Path, calls: int) -> dict:
     for name in names:
         geo = [arrays[f"{name}/{k}"] for k in ("means", "quats", "scales", "opacities")]
         cam = (arrays[f"{name}/viewmat"], arrays[f"{name}/K"], WIDTH, HEIGHT)
-        feats = torch.from_numpy(rng.random((len(geo[0]), CHANNELS), dtype=np.float32))
+        # in torch's own memory (rows on 64-byte lines), as GS-Net's features are
+        feats = torch.empty(len(geo[0]), CHANNELS).copy_(
+            torch.from_numpy(rng.random((len(geo[0]), CHANNELS), dtype=np.float32)))
         leaf = feats.clone().requires_grad_(True)
         pixels = [rng.integers(0, (WIDTH, HEIGHT), (RAYS, 2)) for _ in range(VIEWS)]
 
