@@ -130,10 +130,10 @@ def rasterize(means, quats, scales, opacities, features, viewmat, K, width: int,
         features: [N,C] per-Gaussian features, C in 1..2048; or, with ``sh_degree`` set,
             SH coefficients [N,(d+1)^2,3] (d >= sh_degree; the first (sh_degree+1)^2 are used)
             evaluated per view into RGB (the colour stage, as gsplat's ``colors`` with ``sh_degree``).
-            Float32 rows of a multiple of 16 channels are read in place on CPU devices; rows
-            starting on a 64-byte line (torch's tensors) read fastest: a large numpy array starts
-            16 bytes past one, which made the blend's row loads straddle lines (a 300k-Gaussian
-            room's K=40 blend 330 against 238 ms on an AVX2 CPU).
+            C-contiguous float32 rows of a multiple of 16 channels are read in place on CPU
+            devices; rows starting on a 64-byte line (torch's tensors) read fastest: a large
+            numpy array starts 16 bytes past one, which made the blend's row loads straddle
+            lines (a 300k-Gaussian room's K=40 blend 330 against 238 ms on an AVX2 CPU).
         viewmat: [4,4] world-to-camera (OpenCV axes: x right, y down, z forward).
         K: [3,3] intrinsics in pixels. width, height: image size in pixels.
         sampler: "volume" (full alpha blending, V-Render), "quantile" (Q-Render, Algorithm 1 with
