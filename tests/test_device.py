@@ -34,11 +34,12 @@ def test_no_opencl_names_the_apt_package(monkeypatch):
 
 def test_a_device_failing_the_trial_is_skipped(monkeypatch):
     (*_, dev), *_ = device.list_devices()
-    broken = SimpleNamespace(name="Broken GPU", platform=SimpleNamespace(name="Fake"))
+    broken = SimpleNamespace(name="Broken GPU", driver_version="1.0",
+                             platform=SimpleNamespace(name="Fake", version="OpenCL 3.0 Fake"))
     working = dev
     monkeypatch.setattr(device, "_candidates", lambda spec, ctx: [broken, working])
     monkeypatch.setattr(device, "trial_run", lambda d: "build failed" if d is broken else None)
-    with pytest.warns(UserWarning, match="failed the trial kernel: build failed"):
+    with pytest.warns(UserWarning, match="failed the trial kernels: build failed"):
         assert device.choose_device() is working
 
 

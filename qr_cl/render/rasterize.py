@@ -10,7 +10,7 @@ import numpy as np
 import torch
 
 from ..runtime import (BufferLimitError, Runtime, channel_layout, check_buffer, check_channels, device_rows,
-                       host_empty, runtime, to_device, trim_device_pool)
+                       host_empty, to_device, trim_device_pool)
 from ..stages.binning import RasterPlan, RenderMeta
 from ..stages.select import check_pixels, check_sampler, select
 from ..stages.sh import sh_colors
@@ -18,6 +18,7 @@ from ..stages.vrender import render_fused
 from .autograd import blend
 from .cache import SelectionCache, selection_key
 from .plan import rasterize_plan
+from .selfcheck import checked_runtime
 
 
 def _host(x, name: str, shape: tuple) -> np.ndarray:
@@ -96,7 +97,7 @@ class _Scene:
                              f"Gaussian, features have {sh.shape[1]}")
         if n == 0:
             return np.zeros((0, 3), np.float32)
-        rt = runtime()
+        rt = checked_runtime()
         campos = -self.viewmat[:3, :3].T @ self.viewmat[:3, 3]
         rgb = sh_colors(rt, to_device(rt, self.means), np.ascontiguousarray(sh[:, :(sh_degree + 1) ** 2]), campos)
         return rgb.get()[:, :3].copy()
@@ -186,7 +187,7 @@ def rasterize(means, quats, scales, opacities, features, viewmat, K, width: int,
     if len(scene.means) == 0:
         return scene.empty((height, width) if pixels is None else (len(pixels),))
 
-    rt = runtime()
+    rt = checked_runtime()
     plans: list[RasterPlan] = []
 
     def selection(rays):

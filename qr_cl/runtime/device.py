@@ -20,6 +20,7 @@ import pyopencl.array as cla
 import pyopencl.tools as cl_tools
 
 from .constants import KERNEL_CONSTANTS, TILE
+from .signatures import KernelArg, SignatureError, kernel_signatures
 
 NO_OPENCL_HELP = (
     "No OpenCL platform was found. qr-cl runs its kernels through OpenCL; on a CPU-only Debian or "
@@ -31,7 +32,17 @@ NO_OPENCL_HELP = (
 
 _TRIAL_SOURCE = """
 __kernel void trial(__global float *x) { int i = get_global_id(0); x[i] = 2.0f * x[i] + 1.0f; }
+
+/* acc = the iterations a work-item really made of a loop of n (ones[] holds 1s the compiler cannot
+   see, so the loop is neither folded nor vectorised away). */
+__kernel void loop_probe(const int n, __global const int *ones, __global int *acc) {
+    int s = 0;
+    for (int k = 0; k < n; k++) s += ones[k & 63];
+    acc[get_global_id(0)] = s;
+}
 """
+#: Iterations of the loop probe: qr-cl's walks over a tile's list run this long and longer.
+LOOP_PROBE = 1 << 20
 
 
 class NoDeviceError(RuntimeError):
@@ -100,8 +111,27 @@ def _candidates(spec: str | None, pyopencl_ctx: str | None) -> list[cl.Device]:
     return sorted((d for *_, d in devices), key=lambda d: order[device_kind(d)])
 
 
+def implementation(device: cl.Device) -> str:
+    """The device and the OpenCL implementation that runs it, with versions, for messages."""
+    platform = device.platform
+    return (f"{device.name.strip()} ({platform.name.strip()}, {platform.version.strip()}, "
+            f"driver {device.driver_version.strip()})")
+
+
+def self_check_enabled() -> bool:
+    """False when ``QR_CL_SELF_CHECK=off``: devices are then used without the loop probe and the
+    render check (only for studying a driver's failures: results are not verified)."""
+    value = os.environ.get("QR_CL_SELF_CHECK", "on").strip().lower()
+    if value not in ("on", "off"):
+        raise ValueError(f"QR_CL_SELF_CHECK={value!r}: use on or off")
+    return value == "on"
+
+
 def trial_run(device: cl.Device) -> str | None:
-    """Build and run a tiny kernel on ``device``; return None when it works, else the reason."""
+    """Build and run tiny kernels on ``device``: a trial kernel, then (unless
+    :func:`self_check_enabled` says no) the loop probe, which catches drivers that end long
+    loops early without an error (Mesa 22's llvmpipe stops at 65535 iterations per group of work-
+    items). Returns None when both work, else the reason."""
     try:
         ctx = cl.Context([device])
         queue = cl.CommandQueue(ctx)
@@ -111,11 +141,21 @@ def trial_run(device: cl.Device) -> str | None:
         cl.Kernel(prg, "trial")(queue, (64,), None, buf)
         out = np.empty_like(host)
         cl.enqueue_copy(queue, out, buf)
+        iterations = np.zeros(64, np.int32)
+        if self_check_enabled():
+            ones = cl.Buffer(ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
+                             hostbuf=np.ones(64, np.int32))
+            acc = cl.Buffer(ctx, cl.mem_flags.READ_WRITE, iterations.nbytes)
+            cl.Kernel(prg, "loop_probe")(queue, (64,), None, np.int32(LOOP_PROBE), ones, acc)
+            cl.enqueue_copy(queue, iterations, acc)
         queue.finish()
     except cl.Error as exc:
         return f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else exc}"
     if not np.array_equal(out, 2 * host + 1):
         return "trial kernel ran but returned wrong values"
+    if self_check_enabled() and not np.all(iterations == LOOP_PROBE):
+        return (f"loop limit: a loop of {LOOP_PROBE} iterations ended after {int(iterations.min())} without "
+                "an error; qr-cl's walks over long tile lists would give wrong images here")
     return None
 
 
@@ -126,9 +166,9 @@ def choose_device() -> cl.Device:
         reason = trial_run(device)
         if reason is None:
             return device
-        reasons.append(f"{device.name.strip()} ({device.platform.name.strip()}): {reason}")
-        warnings.warn(f"OpenCL device {device.name.strip()!r} failed the trial kernel: {reason}")
-    raise NoDeviceError("No OpenCL device passed the trial kernel:\n  " + "\n  ".join(reasons))
+        reasons.append(f"{implementation(device)}: {reason}")
+        warnings.warn(f"OpenCL device {implementation(device)} failed the trial kernels: {reason}")
+    raise NoDeviceError("No OpenCL device passed the trial kernels:\n  " + "\n  ".join(reasons))
 
 
 def kernel_source(name: str) -> str:
@@ -158,47 +198,25 @@ GROUP_SIZE = 64
 #: a 640x480 image), so the size is set, not left to the driver.
 BLOCK_GROUP = (TILE,)
 
-#: Element dtype of the OpenCL C scalar types a kernel argument may have (vectors: their base).
-_CL_TYPES = {"char": np.int8, "uchar": np.uint8, "short": np.int16, "ushort": np.uint16,
-             "int": np.int32, "uint": np.uint32, "long": np.int64, "ulong": np.uint64,
-             "float": np.float32}
-
-
-@dataclass(frozen=True)
-class KernelArg:
-    """One argument of a kernel as the kernel declares it (read back from the built program)."""
-
-    name: str
-    type_name: str        # e.g. "int", "float3", "float8*"
-    is_buffer: bool
-
-    @property
-    def dtype(self) -> np.dtype:
-        base = re.match(r"[a-z]+?(?=\d*\*?$)", self.type_name.replace("const ", "").strip())
-        if base is None or base.group(0) not in _CL_TYPES:
-            raise TypeError(f"kernel argument {self.name}: unsupported type {self.type_name!r}")
-        return np.dtype(_CL_TYPES[base.group(0)])
-
-    def value(self, kernel: str, x):
-        """The value pyopencl passes for ``x``: a buffer (device array, Buffer or None) or a
-        numpy scalar/vector of the declared type."""
-        if self.is_buffer:
-            if x is None or isinstance(x, cl.MemoryObjectHolder):
-                return x
-            if isinstance(x, cla.Array):
-                if x.dtype != self.dtype:
-                    raise TypeError(f"{kernel}({self.name}): a {self.type_name} buffer needs "
-                                    f"{self.dtype} data, got {x.dtype}")
-                return x.data
-            raise TypeError(f"{kernel}({self.name}): expected a device array or buffer, got "
-                            f"{type(x).__name__}")
-        lanes = re.search(r"(\d+)$", self.type_name)
-        if lanes:    # a vector argument: 3-vectors are passed as 4
-            n = int(lanes.group(1))
-            v = np.zeros(4 if n == 3 else n, self.dtype)
-            v[:n] = np.asarray(x, self.dtype).reshape(-1)
-            return v
-        return self.dtype.type(x)
+def bind(kernel: str, arg: KernelArg, x):
+    """The value pyopencl passes for ``x`` as argument ``arg`` of ``kernel``: a buffer (device
+    array, Buffer or None) or a numpy scalar/vector of the declared type (3-vectors as 4)."""
+    if arg.is_buffer:
+        if x is None or isinstance(x, cl.MemoryObjectHolder):
+            return x
+        if isinstance(x, cla.Array):
+            if x.dtype != arg.dtype:
+                raise TypeError(f"{kernel}({arg.name}): a {arg.type_name} buffer needs {arg.dtype} data, "
+                                f"got {x.dtype}")
+            return x.data
+        raise TypeError(f"{kernel}({arg.name}): expected a device array or buffer, got {type(x).__name__}")
+    if arg.space:
+        raise TypeError(f"{kernel}({arg.name}): {arg.space} pointer arguments are not supported")
+    if arg.lanes > 1:
+        v = np.zeros(4 if arg.lanes == 3 else arg.lanes, arg.dtype)
+        v[:arg.lanes] = np.asarray(x, arg.dtype).reshape(-1)
+        return v
+    return arg.dtype.type(x)
 
 
 @dataclass
@@ -206,7 +224,8 @@ class Runtime:
     """One OpenCL context + in-order queue, with programs cached per (file, defines).
 
     Kernels are called by name with their arguments by name (:meth:`launch`): the argument list
-    is the one the kernel declares, read back from the built program, so no call site repeats it.
+    is the one the kernel's source declares (:mod:`qr_cl.runtime.signatures`), so no call site
+    repeats it and programs a driver loads from a binary cache work as well.
     ``pool`` is the device memory pool every per-call device array comes from (see
     :func:`qr_cl.runtime.device_empty`): buffers freed by one call are reused by the next.
     """
@@ -268,17 +287,25 @@ class Runtime:
 
     def kernel(self, name: str, **defines: int | float) -> tuple[cl.Kernel, tuple[KernelArg, ...]]:
         """The kernel ``name`` built with ``-D KEY=VALUE`` per define (and the shared constants
-        and ``ACC_FLOATS``, :attr:`accumulator_floats`), with its declared arguments. Programs
-        and kernel objects are cached."""
+        and ``ACC_FLOATS``, :attr:`accumulator_floats`), with the arguments its source declares
+        (checked against the built kernel's count). Programs and kernel objects are cached."""
         file = kernel_files().get(name)
         if file is None:
             raise KeyError(f"no kernel named {name!r} in qr_cl.kernels")
         key = (file, tuple(sorted(defines.items())))
         if key not in self._programs:
             constants = {**KERNEL_CONSTANTS, "ACC_FLOATS": self.accumulator_floats, **defines}
-            options = ["-cl-kernel-arg-info"] + [f"-D{k}={v}" for k, v in sorted(constants.items())]
-            program = cl.Program(self.context, kernel_source(file)).build(options=options)
-            self._programs[key] = {k.function_name: (k, _declared_args(k)) for k in program.all_kernels()}
+            source = kernel_source(file)
+            program = cl.Program(self.context, source).build(
+                options=[f"-D{k}={v}" for k, v in sorted(constants.items())])
+            declared = kernel_signatures(source, constants)
+            self._programs[key] = {}
+            for k in program.all_kernels():
+                args = declared[k.function_name]
+                if len(args) != k.num_args:
+                    raise SignatureError(f"kernel {k.function_name} ({file}): the source declares {len(args)} "
+                                         f"arguments, the built program {k.num_args}")
+                self._programs[key][k.function_name] = (k, args)
         return self._programs[key][name]
 
     def launch(self, name: str, global_size: int | tuple[int, ...], defines: dict | None = None,
@@ -300,15 +327,8 @@ class Runtime:
         if local_size is None and self.gpu_shaped:
             local_size = (GROUP_SIZE,) + (1,) * (len(size) - 1)
             size = (-(-size[0] // GROUP_SIZE) * GROUP_SIZE,) + size[1:]
-        kernel(self.queue, size, local_size, *(a.value(name, args[a.name]) for a in declared))
+        kernel(self.queue, size, local_size, *(bind(name, a, args[a.name]) for a in declared))
 
-
-def _declared_args(kernel: cl.Kernel) -> tuple[KernelArg, ...]:
-    info = cl.kernel_arg_info
-    buffer_spaces = (cl.kernel_arg_address_qualifier.GLOBAL, cl.kernel_arg_address_qualifier.CONSTANT)
-    return tuple(KernelArg(kernel.get_arg_info(i, info.NAME), kernel.get_arg_info(i, info.TYPE_NAME),
-                           kernel.get_arg_info(i, info.ADDRESS_QUALIFIER) in buffer_spaces)
-                 for i in range(kernel.get_info(cl.kernel_info.NUM_ARGS)))
 
 
 _RUNTIME: Runtime | None = None

@@ -1,0 +1,125 @@
+"""The render check a device passes before qr-cl renders on it: a tiny scene through every
+sampler (forward and feature backward) and the fused V-Render, against the float64 twins.
+
+It catches drivers that build and run the kernels but compute something else (the loop probe of
+:func:`qr_cl.runtime.trial_run` catches loops ended early). A device that fails is refused with
+:class:`DeviceCheckError` naming the implementation, its version and what differed. A pass is
+remembered per device, driver and kernel source in ``$QR_CL_CACHE/checks`` (default
+``~/.cache/qr-cl/checks``), so later processes skip it. ``QR_CL_SELF_CHECK=off`` skips it.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..runtime import SAMPLERS, NoDeviceError, Runtime, runtime
+from ..runtime.constants import KERNEL_CONSTANTS
+from ..runtime.device import implementation, kernel_files, kernel_source, self_check_enabled
+from ..scene import look_at
+from ..stages import blend_ref, select_ref, vrender_ref
+
+#: The check scene: Gaussians, image size (px), channels, K of the K samplers.
+N_GAUSSIANS, WIDTH, HEIGHT, CHANNELS, K = 160, 40, 24, 24, 5
+#: A pixel differs when its largest channel error exceeds this fraction of the image's largest
+#: value; a few may (rays whose transmittance meets a boundary at float rounding), no more.
+PIXEL_RTOL, DIFFERING_PIXELS = 1e-3, 0.02
+
+_PASSED: set[int] = set()
+
+
+class DeviceCheckError(NoDeviceError):
+    """A device built and ran qr-cl's kernels but rendered something else than the twins."""
+
+
+def _scene():
+    """A seeded scene of overlapping Gaussians in front of a camera at the origin (tile lists of
+    tens of entries, rays that blend more than K), features and an image gradient."""
+    rng = np.random.default_rng(7)
+    z = rng.uniform(2, 5, N_GAUSSIANS)
+    means = np.c_[rng.uniform(-0.7, 0.7, N_GAUSSIANS) * z, rng.uniform(-0.45, 0.45, N_GAUSSIANS) * z, z]
+    quats = rng.normal(size=(N_GAUSSIANS, 4))
+    quats /= np.linalg.norm(quats, axis=1, keepdims=True)
+    scales = np.exp(rng.uniform(np.log(0.05), np.log(0.5), (N_GAUSSIANS, 3)))
+    opacities = rng.uniform(0.1, 0.9, N_GAUSSIANS)
+    features = rng.normal(size=(N_GAUSSIANS, CHANNELS))
+    grad = rng.normal(size=(HEIGHT * WIDTH, CHANNELS))
+    cam = look_at([0, 0, 0], [0, 0, 1], [0, -1, 0], 30.0, 30.0, WIDTH, HEIGHT)
+    f32 = lambda a: np.ascontiguousarray(a, np.float32)
+    return (f32(means), f32(quats), f32(scales), f32(opacities)), f32(features), f32(grad), cam
+
+
+def _differing(got: np.ndarray, want: np.ndarray) -> float:
+    """The fraction of pixels (rows) of got whose largest error exceeds PIXEL_RTOL of want's scale."""
+    scale = max(float(np.abs(want).max()), 1e-6)
+    return float(np.mean(np.abs(got - want).max(axis=1) > PIXEL_RTOL * scale))
+
+
+def render_check() -> list[str]:
+    """Render the check scene on the process's runtime; returns what differed from the twins
+    (empty when the device passed)."""
+    from .rasterize import image_pixels, rasterize, render_volume_fused   # the renderers use this module
+    geometry, features, grad, cam = _scene()
+    pixels = image_pixels(WIDTH, HEIGHT)
+    failures = []
+    for sampler in SAMPLERS:
+        f = torch.from_numpy(features).requires_grad_(True)
+        image, _, meta = rasterize(*geometry, f, cam.viewmat, cam.K, WIDTH, HEIGHT, sampler=sampler, k=K)
+        (image.reshape(-1, CHANNELS) * torch.from_numpy(grad)).sum().backward()
+        twin = select_ref.select(meta, meta["tile_ranges"], meta["flatten_ids"], pixels, WIDTH, sampler, K)
+        want = blend_ref.blend(twin["ids"], twin["weights"], features)
+        want_grad = np.zeros(features.shape)
+        valid = twin["ids"] >= 0
+        np.add.at(want_grad, twin["ids"][valid], twin["weights"][valid][:, None] * grad[np.nonzero(valid)[0]])
+        for what, got, ref in (("image", image.detach().numpy().reshape(-1, CHANNELS), want),
+                               ("feature gradient", f.grad.numpy(), want_grad)):
+            share = _differing(got, ref)
+            if share > DIFFERING_PIXELS:
+                failures.append(f"{sampler} {what}: {share:.0%} of its rows differ from the float64 twin")
+    image, _, meta = render_volume_fused(*geometry, features, cam.viewmat, cam.K, WIDTH, HEIGHT)
+    want = vrender_ref.vrender(meta, meta["tile_ranges"], meta["flatten_ids"], features, WIDTH, HEIGHT)[0]
+    share = _differing(image.numpy().reshape(-1, CHANNELS), want.reshape(-1, CHANNELS))
+    if share > DIFFERING_PIXELS:
+        failures.append(f"fused V-Render image: {share:.0%} of its pixels differ from the float64 twin")
+    return failures
+
+
+def _record(rt: Runtime) -> Path:
+    """Where a pass of ``rt``'s device is remembered: keyed by the implementation, the launch
+    shapes and every kernel source and build constant."""
+    key = hashlib.sha256()
+    for part in (implementation(rt.device), str(rt.gpu_shaped), str(rt.accumulator_floats),
+                 json.dumps(KERNEL_CONSTANTS, sort_keys=True),
+                 *(kernel_source(f) for f in sorted(set(kernel_files().values())))):
+        key.update(part.encode())
+    root = Path(os.environ.get("QR_CL_CACHE", Path.home() / ".cache" / "qr-cl")) / "checks"
+    return root / f"{key.hexdigest()[:32]}.json"
+
+
+def checked_runtime() -> Runtime:
+    """The process-wide Runtime, its device having passed :func:`render_check` (once per process,
+    or remembered from an earlier one). Raises DeviceCheckError when it fails."""
+    rt = runtime()
+    if id(rt) in _PASSED or not self_check_enabled():
+        return rt
+    record = _record(rt)
+    if record.is_file():
+        _PASSED.add(id(rt))
+        return rt
+    _PASSED.add(id(rt))                    # the check's own renders run on this runtime
+    try:
+        failures = render_check()
+    except BaseException:
+        _PASSED.discard(id(rt))
+        raise
+    if failures:
+        _PASSED.discard(id(rt))
+        raise DeviceCheckError(f"{implementation(rt.device)} failed qr-cl's render check, so qr-cl refuses "
+                               "it (QR_CL_DEVICE chooses another device):\n  " + "\n  ".join(failures))
+    record.parent.mkdir(parents=True, exist_ok=True)
+    record.write_text(json.dumps({"device": implementation(rt.device), "passed": True}))
+    return rt

@@ -1,0 +1,67 @@
+"""A device is used only after its self-check: the loop probe (drivers that end long loops early
+without an error, as Mesa 22's llvmpipe does) and the render check against the float64 twins.
+Failing devices are refused with a message naming the implementation and what failed."""
+import numpy as np
+import pytest
+
+from qr_cl.render import selfcheck
+from qr_cl.runtime import device, runtime
+
+
+def test_a_device_that_ends_loops_early_is_refused(monkeypatch):
+    cut = device._TRIAL_SOURCE.replace("for (int k = 0; k < n; k++)", "for (int k = 0; k < min(n, 65535); k++)")
+    assert cut != device._TRIAL_SOURCE
+    monkeypatch.setattr(device, "_TRIAL_SOURCE", cut)
+    reason = device.trial_run(device.choose_device.__globals__["_candidates"](None, None)[0])
+    assert reason.startswith(f"loop limit: a loop of {device.LOOP_PROBE} iterations ended after 65535")
+    monkeypatch.delenv("QR_CL_DEVICE", raising=False)
+    monkeypatch.delenv("PYOPENCL_CTX", raising=False)
+    with pytest.warns(UserWarning), pytest.raises(device.NoDeviceError) as err:
+        device.choose_device()
+    assert "loop limit" in str(err.value) and "Portable Computing Language" in str(err.value)
+    monkeypatch.setenv("QR_CL_SELF_CHECK", "off")        # the probe is what refused it
+    assert device.choose_device() is not None
+
+
+def test_the_render_check_passes_here_and_is_remembered(monkeypatch, tmp_path):
+    monkeypatch.setenv("QR_CL_CACHE", str(tmp_path))
+    monkeypatch.setattr(selfcheck, "_PASSED", set())
+    assert selfcheck.render_check() == []
+    assert selfcheck.checked_runtime() is runtime()
+    records = list((tmp_path / "checks").glob("*.json"))
+    assert len(records) == 1 and "passed" in records[0].read_text()
+    monkeypatch.setattr(selfcheck, "_PASSED", set())
+    monkeypatch.setattr(selfcheck, "render_check", lambda: pytest.fail("a remembered pass is checked again"))
+    assert selfcheck.checked_runtime() is runtime()
+
+
+def test_a_device_rendering_wrong_rays_is_refused(monkeypatch, tmp_path):
+    """As on rusticl, where top-K's walk ends early and leaves rays unselected."""
+    monkeypatch.setenv("QR_CL_CACHE", str(tmp_path))
+    monkeypatch.setattr(selfcheck, "_PASSED", set())
+    rt = runtime()
+    launch = type(rt).launch
+
+    def lossy(self, name, *args, **kwargs):
+        launch(self, name, *args, **kwargs)
+        if name == "select_topk":
+            count = kwargs["count"]
+            host = count.get()
+            host[::3] = 0
+            count.set(host)
+    monkeypatch.setattr(type(rt), "launch", lossy)
+    with pytest.raises(selfcheck.DeviceCheckError) as err:
+        selfcheck.checked_runtime()
+    message = str(err.value)
+    assert "Portable Computing Language" in message and "topk feature gradient" in message
+    assert "quantile" not in message and not (tmp_path / "checks").exists()
+    with pytest.raises(selfcheck.DeviceCheckError):          # not remembered: checked again
+        selfcheck.checked_runtime()
+    monkeypatch.setenv("QR_CL_SELF_CHECK", "off")
+    assert selfcheck.checked_runtime() is rt
+
+
+def test_self_check_setting_is_validated(monkeypatch):
+    monkeypatch.setenv("QR_CL_SELF_CHECK", "maybe")
+    with pytest.raises(ValueError, match="QR_CL_SELF_CHECK='maybe': use on or off"):
+        device.self_check_enabled()
