@@ -16,15 +16,16 @@
    are [offsets[p], offsets[p] + count[p]). */
 __kernel void blend(__global const int *offsets, __global const int *count,
                     __global const int *sel_ids, __global const float *sel_w,
-                    __global const float *features,        /* [N, cstride] */
-                    const int cstride, const int full, const int n_rays, const int width, const int height,
+                    const int n_entries, __global const float *features,   /* [N, cstride] */
+                    const int n, const int cstride, const int full, const int n_rays, const int width, const int height,
                     const int tiles_x, __global const float *background,   /* [cstride] */
                     __global const float *t_rem, const int use_bg,
                     const int stream,                      /* write the image with VSTREAM */
                     __global float *image) {               /* [P, cstride] */
     int p;
     if (!ray_row(get_global_id(0), full, n_rays, width, height, tiles_x, &p)) return;
-    blend_entries(sel_ids + offsets[p], sel_w + offsets[p], count[p], features, cstride,
+    const int2 span = ray_span(offsets, count, p, n_entries);
+    blend_entries(sel_ids + span.x, sel_w + span.x, span.y - span.x, features, n, cstride,
                   get_global_id(1) * NV * VW, use_bg ? t_rem[p] : 0.f, background, use_bg, stream,
                   image + (size_t)p * cstride);
 }
@@ -35,13 +36,13 @@ __kernel void blend(__global const int *offsets, __global const int *count,
 __kernel void blend_backward(const int n, __global const int *order,   /* [N] Gaussian of each work-item */
                              const int n_chunks, __global const int *cursor,
                              __global const int *t_ray, __global const float *t_w,
-                             __global const float *dimage,   /* [P, cstride] */
+                             __global const float *dimage, const int n_rays,   /* [P, cstride] */
                              const int cstride, __global float *dfeatures) {   /* [N, cstride] */
     if (get_global_id(0) >= n) return;
     const int g = order[get_global_id(0)];
     const int start = g ? cursor[g * n_chunks - 1] : 0;
     const int end = cursor[(g + 1) * n_chunks - 1];
-    blend_entries(t_ray + start, t_w + start, end - start, dimage, cstride, get_global_id(1) * NV * VW,
+    blend_entries(t_ray + start, t_w + start, end - start, dimage, n_rays, cstride, get_global_id(1) * NV * VW,
                   0.f, dimage, 0, 0, dfeatures + (size_t)g * cstride);   /* no background */
 }
 
@@ -52,7 +53,8 @@ __kernel void blend_backward(const int n, __global const int *order,   /* [N] Ga
    only its own entries' rows. */
 __kernel void blend_backward_scatter(const int n_owners, __global const int *bounds, const int n_rays,
                                      __global const int *offsets, __global const int *count,
-                                     __global const int *sel_ids, __global const float *sel_w,
+                                     const int n_entries, __global const int *sel_ids,
+                                     __global const float *sel_w,
                                      __global const float *dimage,   /* [P, cstride] */
                                      const int cstride, __global uchar *touched,   /* [N] */
                                      __global float *dfeatures) {   /* [N, cstride] */
@@ -61,7 +63,8 @@ __kernel void blend_backward_scatter(const int n_owners, __global const int *bou
     const int g0 = bounds[m], g1 = bounds[m + 1], n_vec = cstride / VW;
     for (int p = 0; p < n_rays; p++) {
         __global const float *d = dimage + (size_t)p * cstride;
-        for (int j = offsets[p]; j < offsets[p] + count[p]; j++) {
+        const int2 span = ray_span(offsets, count, p, n_entries);
+        for (int j = span.x; j < span.y; j++) {
             const int g = sel_ids[j];
             if (g < g0 || g >= g1) continue;
             const float w = sel_w[j];
@@ -88,10 +91,12 @@ __kernel void blend_backward_scatter(const int n_owners, __global const int *bou
    K samplers (normalized != 0): w_j = u_j / U with u_j = T_j a_j among the selected and
        U = sum_j u_j (= 1 - T^Q), so dL/du_j = h_j = (g_j - sum_i g_i w_i) / U and
        dL/da_j = T_j h_j - (sum_{i>j} h_i u_i) / (1 - a_j)
-   One work-item per ray; d_alpha has the layout of sel_ids. Rows are cstride floats. */
+   One work-item per ray; d_alpha has the layout of sel_ids. Rows are cstride floats. Entries
+   whose id is outside the n Gaussians count as alpha 0 (d_alpha 0). */
 __kernel void blend_backward_alpha(const int n_rays, const int full, const int width,
                                    __global const int2 *pixels,
                                    __global const int *offsets, __global const int *count,
+                                   const int n_entries, const int n,
                                    __global const int *sel_ids, __global const float *sel_w,
                                    __global const float8 *splats,
                                    __global const float *features,   /* [N, cstride] */
@@ -101,10 +106,13 @@ __kernel void blend_backward_alpha(const int n_rays, const int full, const int w
     const int p = get_global_id(0);
     if (p >= n_rays) return;
     const float2 pix = ray_pixel(p, full, width, pixels);
-    const int start = offsets[p], end = start + count[p];
+    const int2 span = ray_span(offsets, count, p, n_entries);
+    const int start = span.x, end = span.y;
     __global const float *di = dimage + (size_t)p * cstride;
     float gw = 0.f;                                   /* pass 1: g_j (kept in d_alpha), sum g w */
     for (int j = start; j < end; j++) {
+        d_alpha[j] = 0.f;
+        if ((uint)sel_ids[j] >= (uint)n) continue;
         __global const float *f = features + (size_t)sel_ids[j] * cstride;
         vec_t acc = (vec_t)(0.f);
         for (int v = 0; v < cstride / VW; v++) acc += VLOAD(v, f) * VLOAD(v, di);
@@ -113,12 +121,13 @@ __kernel void blend_backward_alpha(const int n_rays, const int full, const int w
     }
     float T = 1.f, U = 0.f;                           /* pass 2: the final T and U */
     for (int j = start; j < end; j++) {
-        const float a = splat_alpha(splats[sel_ids[j]], pix.x, pix.y);
+        const float a = (uint)sel_ids[j] < (uint)n ? splat_alpha(splats[sel_ids[j]], pix.x, pix.y) : 0.f;
         U += T * a;
         T *= 1.f - a;
     }
     float S = normalized ? 0.f : d_trem[p] * T;      /* pass 3, back to front: S = sum_{i>j} ... */
     for (int j = end - 1; j >= start; j--) {
+        if ((uint)sel_ids[j] >= (uint)n) continue;
         const float a = splat_alpha(splats[sel_ids[j]], pix.x, pix.y);
         T /= 1.f - a;                                 /* T_j */
         const float h = normalized ? (d_alpha[j] - gw) / U : d_alpha[j];

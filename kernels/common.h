@@ -29,6 +29,14 @@ static inline int ray_row(int gid, int full, int n_rays, int width, int height, 
     return x < width && y < height;
 }
 
+/* Ray p's entries [x, y) in a selection's id and weight buffers of n_entries: count[p] from
+   offsets[p], clamped to the buffers, so that a count no kernel wrote (a driver that ended a
+   selection early) never sends a walk past them. */
+static inline int2 ray_span(__global const int *offsets, __global const int *count, int p, int n_entries) {
+    const int start = clamp(offsets[p], 0, n_entries);
+    return (int2)(start, start + clamp(count[p], 0, n_entries - start));
+}
+
 /* The pixel centre of ray p: of the whole image (full != 0, p = y * width + x) or of pixels[p]. */
 static inline float2 ray_pixel(int p, int full, int width, __global const int2 *pixels) {
     const int2 xy = full ? (int2)(p % width, p / width) : pixels[p];
@@ -366,9 +374,10 @@ typedef CAT(float, VW) vec_t;
 
 /* out[c0, c0 + NV * VW) of one image row = sum over the n entries (ids[j], w[j]) of
    w[j] features[ids[j], c0 ...] + tb * background[c0 ...] (the background only when use_bg),
-   summed in entry order RV vectors at a time; written with VSTREAM when stream. */
+   summed in entry order RV vectors at a time; written with VSTREAM when stream. Ids outside the
+   n_rows rows of features are skipped. */
 static inline void blend_entries(__global const int *ids, __global const float *w, const int n,
-                                 __global const float *features, const int cstride, const int c0,
+                                 __global const float *features, const int n_rows, const int cstride, const int c0,
                                  const float tb, __global const float *background, const int use_bg,
                                  const int stream, __global float *out) {
     for (int v0 = 0; v0 < NV; v0 += RV) {
@@ -377,6 +386,7 @@ static inline void blend_entries(__global const int *ids, __global const float *
         #pragma unroll
         for (int v = 0; v < RV; v++) acc[v] = (vec_t)(0.f);
         for (int j = 0; j < n; j++) {
+            if ((uint)ids[j] >= (uint)n_rows) continue;
             const float wj = w[j];
             __global const float *row = features + (size_t)ids[j] * cstride + c;
             #pragma unroll

@@ -82,8 +82,7 @@ def reached_gaussians(scene: SceneData, sampler: str = "quantile", k: int = 40) 
     reached = np.zeros(len(scene.gaussians), bool)
     for view in range(len(scene.frames)):
         sel = select(view_plan(scene, view), sampler, k)
-        n = sel.n_rays
-        reached[sel.ids.get()[ray_entries(sel.offsets.get()[:n], sel.count.get()[:n])]] = True
+        reached[sel.ids.get()[ray_entries(*sel.spans())]] = True
     return reached
 
 

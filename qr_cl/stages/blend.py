@@ -58,8 +58,8 @@ def blend_forward(sel: Selection, features: cla.Array, channels: int,
               use_bg=background is not None, stream=streamed(image.nbytes))
     if sel.pending is not None:
         launch, sel.pending = sel.pending, None
-        launch(defines={"VW": vw, "NV": nv, "BLEND_ROWS": 1}, features=features, cstride=cstride,
-               image=image, **bg)
+        launch(defines={"VW": vw, "NV": nv, "BLEND_ROWS": 1}, features=features, n_rows=sel.n_gaussians,
+               cstride=cstride, image=image, **bg)
         return image
     size, full = sel.launch()
     plan = sel.plan
@@ -68,8 +68,8 @@ def blend_forward(sel: Selection, features: cla.Array, channels: int,
     # over its chunks; always, the groups keep PoCL's per-group private arrays small
     size, local = work_groups(rt, size, n_chunks)
     rt.launch("blend", (size, n_chunks), defines={"VW": vw, "NV": nv}, local_size=local,
-              offsets=sel.offsets, count=sel.count, sel_ids=sel.ids, sel_w=sel.weights,
-              features=features, cstride=cstride, full=full, n_rays=sel.n_rays, width=plan.width,
+              offsets=sel.offsets, count=sel.count, n_entries=sel.ids.size, sel_ids=sel.ids, sel_w=sel.weights,
+              features=features, n=sel.n_gaussians, cstride=cstride, full=full, n_rays=sel.n_rays, width=plan.width,
               height=plan.height, tiles_x=plan.tiles_x, t_rem=sel.t_rem, image=image, **bg)
     return image
 
@@ -97,8 +97,8 @@ def blend_backward(sel: Selection, dimage: cla.Array, channels: int, out: cla.Ar
         bounds = sel.owners[n_owners]
         rt.launch("blend_backward_scatter", bounds.size - 1, defines={"VW": vw, "NV": nv}, local_size=(1,),
                   n_owners=bounds.size - 1, bounds=bounds, n_rays=sel.n_rays,
-                  offsets=sel.offsets, count=sel.count, sel_ids=sel.ids, sel_w=sel.weights, dimage=dimage,
-                  cstride=cstride, touched=device_zeros(rt, max(sel.n_gaussians, 1), np.uint8),
+                  offsets=sel.offsets, count=sel.count, n_entries=sel.ids.size, sel_ids=sel.ids,
+                  sel_w=sel.weights, dimage=dimage, cstride=cstride, touched=device_zeros(rt, max(sel.n_gaussians, 1), np.uint8),
                   dfeatures=dfeatures)
         return dfeatures
     t = sel.transpose()
@@ -106,7 +106,7 @@ def blend_backward(sel: Selection, dimage: cla.Array, channels: int, out: cla.Ar
     size, local = work_groups(rt, sel.n_gaussians, n_chunks)
     rt.launch("blend_backward", (size, n_chunks), defines={"VW": vw, "NV": nv}, local_size=local,
               n=sel.n_gaussians, order=sel.backward_order(), n_chunks=t.chunks, cursor=t.cursor, t_ray=t.ray,
-              t_w=t.weight, dimage=dimage, cstride=cstride, dfeatures=dfeatures)
+              t_w=t.weight, dimage=dimage, n_rays=sel.n_rays, cstride=cstride, dfeatures=dfeatures)
     return dfeatures
 
 
@@ -122,8 +122,8 @@ def owner_bounds(sel: Selection, owners: int) -> np.ndarray:
     hist = device_zeros(rt, chunks * bins, np.int32)
     if sel.n_rays:
         rt.launch("transpose_count", chunks, local_size=(1,), n_rays=sel.n_rays, rays_per=-(-sel.n_rays // chunks),
-                  n_chunks=chunks, bin_shift=shift, offsets=sel.offsets, count=sel.count, sel_ids=sel.ids,
-                  hist=hist)
+                  n_chunks=chunks, bin_shift=shift, offsets=sel.offsets, count=sel.count, n_entries=sel.ids.size,
+                  n=n, sel_ids=sel.ids, hist=hist)
     cum = np.cumsum(hist.get().reshape(bins, chunks).sum(1))
     cuts = np.searchsorted(cum, cum[-1] * np.arange(1, owners) / owners, side="right")
     return np.concatenate([[0], np.minimum(cuts << shift, n), [n]]).astype(np.int32)
@@ -177,7 +177,8 @@ def blend_backward_alpha(sel: Selection, features: cla.Array, dimage: cla.Array,
         return d_alpha
     d_trem = np.zeros(sel.n_rays, np.float32) if d_trem is None else np.asarray(d_trem, np.float32)
     rt.launch("blend_backward_alpha", sel.n_rays, defines={"VW": vw, "NV": 1}, n_rays=sel.n_rays,
-              **_ray_pixels(sel), offsets=sel.offsets, count=sel.count, sel_ids=sel.ids, sel_w=sel.weights,
+              **_ray_pixels(sel), offsets=sel.offsets, count=sel.count, n_entries=sel.ids.size,
+              n=sel.n_gaussians, sel_ids=sel.ids, sel_w=sel.weights,
               splats=sel.plan.splats, features=features, dimage=dimage, cstride=cstride,
               normalized=int(sel.sampler != "volume"), d_trem=to_device(rt, d_trem, np.float32),
               d_alpha=d_alpha)

@@ -128,11 +128,19 @@ class Selection:
         self.transpose()
         return self.order
 
+    def spans(self) -> tuple[np.ndarray, np.ndarray]:
+        """(offsets, count) [P] int64 on the host, each ray's count bounded by the id buffer as
+        the kernels bound it (``ray_span`` in kernels/common.h)."""
+        n, size = self.n_rays, self.ids.size
+        offsets = np.clip(self.offsets.get()[:n].astype(np.int64), 0, size)
+        return offsets, np.clip(self.count.get()[:n].astype(np.int64), 0, size - offsets)
+
     def host(self) -> dict[str, np.ndarray]:
         """Host copies as dense arrays: ids [P,L] (-1 padded) and weights [P,L] (0 padded) with L the
         longest list, count, t_walk, t_sel, t_rem [P]."""
         n = self.n_rays
-        count, offsets = self.count.get()[:n], self.offsets.get()[:n]
+        offsets, count = self.spans()
+        count = count.astype(np.int32)
         width = int(count.max(initial=0))
         cols = np.arange(width)
         valid = cols[None] < count[:, None]
@@ -171,14 +179,15 @@ def _transpose_counted(sel: Selection) -> Transpose:
     chunks = max(1, min(CHUNKS_PER_CORE * rt.device.max_compute_units, n_rays, MAX_HIST // max(n, 1)))
     rays_per = -(-n_rays // chunks) if n_rays else 1
     cursor = device_zeros(rt, n * chunks, np.int32)
-    total = int(cla.sum(sel.count[:n_rays]).get()) if n_rays else 0
+    args = dict(n_rays=n_rays, rays_per=rays_per, n_chunks=chunks, offsets=sel.offsets,
+                count=sel.count, n_entries=sel.ids.size, n=n, sel_ids=sel.ids)
+    if n_rays:
+        rt.launch("transpose_count", chunks, **args, bin_shift=0, hist=cursor)
+    total = int(cla.sum(cursor).get())      # the entries placed (counts bounded, ids in the scene)
     t_ray = device_empty(rt, max(total, 1), np.int32)
     t_w = device_empty(rt, max(total, 1), np.float32)
     t_entry = device_empty(rt, max(total, 1), np.int32)
     if n_rays:
-        args = dict(n_rays=n_rays, rays_per=rays_per, n_chunks=chunks, offsets=sel.offsets,
-                    count=sel.count, sel_ids=sel.ids)
-        rt.launch("transpose_count", chunks, **args, bin_shift=0, hist=cursor)
         exclusive_scan(rt, cursor)
         rt.launch("transpose_fill", chunks, **args, sel_w=sel.weights, cursor=cursor,
                   t_ray=t_ray, t_w=t_w, t_entry=t_entry)
@@ -207,8 +216,12 @@ def _transpose_sorted(sel: Selection) -> Transpose:
     work-item per ray or entry; the same entries in the same order as :func:`_transpose_counted`,
     with one chunk (cursor[g] = the end of Gaussian g's segment)."""
     rt, n, n_rays = sel.plan.runtime, sel.n_gaussians, sel.n_rays
-    compact = exclusive_scan(rt, sel.count[:max(n_rays, 1)], device_empty(rt, max(n_rays, 1), np.int32))
-    total = last_value(compact) + last_value(sel.count[:max(n_rays, 1)]) if n_rays else 0
+    spans = device_zeros(rt, max(n_rays, 1), np.int32)       # the counts bounded by the buffers
+    if n_rays:
+        rt.launch("ray_spans", n_rays, n_rays=n_rays, offsets=sel.offsets, count=sel.count,
+                  n_entries=sel.ids.size, spans=spans)
+    compact = exclusive_scan(rt, spans, device_empty(rt, max(n_rays, 1), np.int32))
+    total = last_value(compact) + last_value(spans) if n_rays else 0
     cursor = device_zeros(rt, n, np.int32)
     t_ray, t_w = device_empty(rt, max(total, 1), np.int32), device_empty(rt, max(total, 1), np.float32)
     t_entry = device_empty(rt, max(total, 1), np.int32)
@@ -217,10 +230,10 @@ def _transpose_sorted(sel: Selection) -> Transpose:
         entry_ray, entry_w = device_empty(rt, total, np.int32), device_empty(rt, total, np.float32)
         entry_index = device_empty(rt, total, np.int32)
         rt.launch("transpose_keys", n_rays, n_rays=n_rays, offsets=sel.offsets, count=sel.count,
-                  compact=compact, sel_ids=sel.ids, sel_w=sel.weights, keys=keys, values=values,
+                  n_entries=sel.ids.size, n=n, compact=compact, sel_ids=sel.ids, sel_w=sel.weights, keys=keys, values=values,
                   entry_ray=entry_ray, entry_w=entry_w, entry_index=entry_index)
-        keys, values = sort_pairs(rt, keys, values, 32 + max(1, int(n - 1).bit_length()))
-        rt.launch("transpose_gather", total, n=total, keys=keys, values=values, entry_ray=entry_ray,
+        keys, values = sort_pairs(rt, keys, values, 32 + max(1, int(n).bit_length()))
+        rt.launch("transpose_gather", total, n=total, n_gaussians=n, keys=keys, values=values, entry_ray=entry_ray,
                   entry_w=entry_w, entry_index=entry_index, t_ray=t_ray, t_w=t_w, t_entry=t_entry,
                   ends=cursor)
         _max_scan(rt.context)(cursor)
@@ -300,7 +313,8 @@ def select(plan: RasterPlan, sampler: str = "quantile", k: int = 40, pixels=None
     if pixels is not None:
         pixels = check_pixels(pixels, plan.width, plan.height)
     n_rays = plan.width * plan.height if pixels is None else len(pixels)
-    count, t_walk, t_sel, t_rem = (device_empty(rt, max(n_rays, 1), dt)
+    # zeroed, so a ray that a driver's cut-short kernel left unwritten selects nothing
+    count, t_walk, t_sel, t_rem = (device_zeros(rt, max(n_rays, 1), dt)
                                    for dt in (np.int32, np.float32, np.float32, np.float32))
     if n_rays == 0:
         return Selection(plan, sampler, k, pixels, device_empty(rt, 1, np.int32), device_empty(rt, 1, np.float32),
@@ -390,9 +404,10 @@ def gather_rays(selection: Selection, rays) -> Selection:
                          *(cla.empty(q, 1, dt) for dt in (np.int32, np.float32, np.float32, np.float32)))
     k = selection.k
     if selection.sampler == "volume":
-        count = selection.count.get()[:n_all][rays]
+        all_offsets, all_count = selection.spans()
+        count = all_count[rays]
         offsets = (np.cumsum(count) - count).astype(np.int32)
-        source = ray_entries(selection.offsets.get()[:n_all][rays], count)
+        source = ray_entries(all_offsets[rays], count)
     else:                                    # dense rows: ray p's K slots start at p * K
         offsets = np.arange(0, n * k, k, dtype=np.int32)
         source = (rays[:, None] * k + np.arange(k)).ravel()
@@ -428,8 +443,7 @@ def remap_ids(selection: Selection, lut: np.ndarray, n_rows: int) -> CompactSele
 
 def _host_entries(selection: Selection) -> tuple[np.ndarray, np.ndarray]:
     """(ids [len(selection.ids)] int32 on the host, positions [E] of the rays' entries in it)."""
-    n = selection.n_rays
-    return selection.ids.get(), ray_entries(selection.offsets.get()[:n], selection.count.get()[:n])
+    return selection.ids.get(), ray_entries(*selection.spans())
 
 
 def _remap(selection: Selection, ids: np.ndarray, entries: np.ndarray, lut: np.ndarray,
