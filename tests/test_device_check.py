@@ -1,7 +1,6 @@
 """A device is used only after its self-check: the loop probe (drivers that end long loops early
 without an error, as Mesa 22's llvmpipe does) and the render check against the float64 twins.
 Failing devices are refused with a message naming the implementation and what failed."""
-import numpy as np
 import pytest
 
 from qr_cl.render import selfcheck

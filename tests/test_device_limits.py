@@ -4,12 +4,22 @@ import numpy as np
 import pytest
 import torch
 
+import pyopencl as cl
+
 import qr_cl
 from qr_cl.runtime import BufferLimitError, Runtime
 
+ALLOCATE = cl.tools.MemoryPool.__call__
+
 
 def limit_buffers(monkeypatch, nbytes: int) -> None:
+    """Make the device's largest buffer ``nbytes``, and fail any buffer made larger than that
+    (as a driver would: rusticl's INVALID_BUFFER_SIZE)."""
     monkeypatch.setattr(Runtime, "max_buffer_bytes", property(lambda self: nbytes))
+    def checked(pool, size):
+        assert size <= nbytes, f"a {size}-byte buffer escaped the {nbytes}-byte limit"
+        return ALLOCATE(pool, size)
+    monkeypatch.setattr(cl.tools.MemoryPool, "__call__", checked)
 
 
 def render(scene, channels: int, sampler: str, k: int = 6, pixels=None):
@@ -22,8 +32,15 @@ def render(scene, channels: int, sampler: str, k: int = 6, pixels=None):
     return img.detach(), alpha, feats.grad, meta["selection"]
 
 
+@pytest.fixture(params=["cpu", "gpu"])
+def shape(request, monkeypatch):
+    """Both launch shapes (GPU shapes sort 8-byte transpose keys per selection entry)."""
+    monkeypatch.setenv("QR_CL_LAUNCH", request.param)
+    return request.param
+
+
 @pytest.mark.parametrize("sampler", ["volume", "quantile", "topk"])
-def test_split_render_equals_the_whole(random_scene, monkeypatch, sampler):
+def test_split_render_equals_the_whole(random_scene, monkeypatch, sampler, shape):
     n, w, h = len(random_scene[0]), random_scene[6], random_scene[7]
     whole = render(random_scene, 40, sampler)
     # features fit only 32 channels at a time, an image only ~1/6 of the rays at 32 channels
@@ -34,7 +51,7 @@ def test_split_render_equals_the_whole(random_scene, monkeypatch, sampler):
     torch.testing.assert_close(split[2], whole[2], rtol=1e-5, atol=1e-6)   # per-set sums added
 
 
-def test_split_pixel_subset_and_volume_entries(random_scene, monkeypatch):
+def test_split_pixel_subset_and_volume_entries(random_scene, monkeypatch, shape):
     """One channel: the image rows fit but the volume selection's entries do not; the rays are halved."""
     w, h = random_scene[6], random_scene[7]
     pixels = np.stack(np.meshgrid(np.arange(0, w, 3), np.arange(0, h, 2)), -1).reshape(-1, 2)

@@ -12,7 +12,7 @@ import torch
 from ..runtime import (BufferLimitError, Runtime, channel_layout, check_buffer, check_channels, device_rows,
                        host_empty, to_device, trim_device_pool)
 from ..stages.binning import RasterPlan, RenderMeta
-from ..stages.select import check_pixels, check_sampler, select
+from ..stages.select import check_pixels, check_sampler, entry_bytes, select
 from ..stages.sh import sh_colors
 from ..stages.vrender import render_fused
 from .autograd import blend
@@ -50,11 +50,11 @@ def image_pixels(width: int, height: int) -> np.ndarray:
 def ray_sets(rt: Runtime, width: int, height: int, pixels: np.ndarray | None, k: int,
              cstride: int) -> list[np.ndarray | None]:
     """The rays of a render in sets whose image rows ([P, cstride] floats) and dense selection
-    rows ([P, K]) fit in one device buffer: ``[pixels]`` when everything fits (None = the whole
+    rows ([P, K], and their transpose's keys: :func:`entry_bytes`) fit in one device buffer: ``[pixels]`` when everything fits (None = the whole
     image), else consecutive runs of the pixel coordinates [P_i, 2] (x, y), row-major for the
     whole image, so concatenating the sets' rows gives the image."""
     n_rays = width * height if pixels is None else len(pixels)
-    per_ray = 4 * max(cstride, k)
+    per_ray = max(4 * cstride, entry_bytes(rt) * k)
     if n_rays * per_ray <= rt.max_buffer_bytes:
         return [pixels]
     pixels = image_pixels(width, height) if pixels is None else pixels

@@ -120,19 +120,31 @@ def padded_vector(values, channels: int, cstride: int) -> np.ndarray:
     return out
 
 
+def _checked(rt: Runtime, shape, dtype) -> None:
+    """BufferLimitError (naming the array's shape and bytes) unless it fits in one buffer of rt."""
+    shape = (int(shape),) if np.isscalar(shape) else tuple(int(s) for s in shape)
+    check_buffer(rt, math.prod(shape) * np.dtype(dtype).itemsize, f"a device array of {shape} {np.dtype(dtype)}")
+
+
 def device_empty(rt: Runtime, shape, dtype=np.float32) -> cla.Array:
-    """An uninitialised device array from ``rt``'s memory pool (reused from earlier calls)."""
+    """An uninitialised device array from ``rt``'s memory pool (reused from earlier calls);
+    BufferLimitError if it exceeds the device's largest buffer."""
+    _checked(rt, shape, dtype)
     return cla.empty(rt.queue, shape, dtype, allocator=rt.pool)
 
 
 def device_zeros(rt: Runtime, shape, dtype=np.float32) -> cla.Array:
-    """A zero-filled device array from ``rt``'s memory pool."""
+    """A zero-filled device array from ``rt``'s memory pool (BufferLimitError as device_empty)."""
+    _checked(rt, shape, dtype)
     return cla.zeros(rt.queue, shape, dtype, allocator=rt.pool)
 
 
 def to_device(rt: Runtime, array, dtype=np.float32) -> cla.Array:
-    """A device copy of a host array (converted to ``dtype``) in a buffer from ``rt``'s pool."""
-    return cla.to_device(rt.queue, np.ascontiguousarray(array, dtype=dtype), allocator=rt.pool)
+    """A device copy of a host array (converted to ``dtype``) in a buffer from ``rt``'s pool
+    (BufferLimitError as device_empty)."""
+    array = np.ascontiguousarray(array, dtype=dtype)
+    _checked(rt, array.shape, dtype)
+    return cla.to_device(rt.queue, array, allocator=rt.pool)
 
 
 #: Held (free) bytes above which :func:`trim_device_pool` empties the device pool by default.
@@ -178,6 +190,7 @@ def shared_array(rt: Runtime, host: np.ndarray, access: str = "rw") -> Iterator[
     if host.nbytes == 0:                   # no buffer of zero bytes: an empty device array
         yield cla.empty(rt.queue, host.shape, host.dtype)
         return
+    check_buffer(rt, host.nbytes, f"a shared host array of {host.shape} {host.dtype}")
     try:
         if rt.host_unified:
             buf = cl.Buffer(rt.context, _ACCESS[access] | cl.mem_flags.USE_HOST_PTR, hostbuf=host)

@@ -19,7 +19,7 @@ import pyopencl.array as cla
 import torch
 from pyopencl.algorithm import RadixSort
 
-from ..runtime import Runtime, device_empty, device_zeros, exclusive_scan, host_empty, last_value, to_device
+from ..runtime import Runtime, check_buffer, device_empty, device_zeros, exclusive_scan, host_empty, last_value, to_device
 from .project import FOOTPRINT_INTS, Projection, tile_grid
 
 BIN_CHUNKS_PER_CORE = 4   # the CPU binning's work-items per compute unit
@@ -114,6 +114,11 @@ def _get(array: cla.Array) -> np.ndarray:
     return array.get(ary=host_empty(array.shape, array.dtype))
 
 
+#: Bytes of the largest buffer pyopencl's radix sort makes per key: its scan's 2^2 int32 bucket
+#: counts per key (2 bits a pass).
+SORT_BYTES_PER_KEY = 16
+
+
 @lru_cache(maxsize=None)
 def radix_sorter(context: cl.Context) -> RadixSort:
     """pyopencl's RadixSort of (uint64 key, int32 value) pairs for ``context`` (built once)."""
@@ -179,6 +184,7 @@ def sort_pairs(rt: Runtime, keys: cla.Array, values: cla.Array, key_bits: int) -
         host_values = _get(values)
         return to_device(rt, sorted_keys, np.uint64), to_device(
             rt, np.take(host_values, order, out=host_empty(values.shape, values.dtype)), np.int32)
+    check_buffer(rt, SORT_BYTES_PER_KEY * keys.size, f"the device sort of {keys.size} keys")
     (sorted_keys, sorted_values), _ = radix_sorter(rt.context)(keys, values, key_bits=key_bits,
                                                                allocator=rt.pool)
     return sorted_keys, sorted_values

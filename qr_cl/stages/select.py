@@ -26,9 +26,9 @@ import pyopencl as cl
 import pyopencl.array as cla
 from pyopencl.scan import InclusiveScanKernel
 
-from ..runtime import (BLOCK_GROUP, SAMPLERS, TILE, check_buffer, device_empty, device_zeros, exclusive_scan,
+from ..runtime import (BLOCK_GROUP, SAMPLERS, TILE, Runtime, check_buffer, device_empty, device_zeros, exclusive_scan,
                        last_value, to_device)
-from .binning import RasterPlan, sort_pairs
+from .binning import SORT_BYTES_PER_KEY, RasterPlan, sort_pairs
 
 CHUNKS_PER_CORE = 4          # the CPU transpose splits the rays into this many chunks per compute unit
 MAX_HIST = 1 << 24            # ... and n_gaussians * chunks stays below this many ints
@@ -296,6 +296,13 @@ def row_offsets(queue: cl.CommandQueue, n_rays: int, k: int) -> cla.Array:
     return cla.arange(queue, 0, n_rays * k, k, dtype=np.int32)
 
 
+def entry_bytes(rt: Runtime) -> int:
+    """Bytes per selection entry of the largest buffer made for it: an id (4), or on GPU-shaped
+    runtimes what the transpose's device sort makes per key (:data:`SORT_BYTES_PER_KEY`), so a
+    selection that fits also fits its backward."""
+    return SORT_BYTES_PER_KEY if rt.gpu_shaped else 4
+
+
 def select(plan: RasterPlan, sampler: str = "quantile", k: int = 40, pixels=None,
            defer: bool = False) -> Selection:
     """Run the selection kernel of ``sampler`` ("volume", "quantile", "topk" or "stratified") with
@@ -325,13 +332,13 @@ def select(plan: RasterPlan, sampler: str = "quantile", k: int = 40, pixels=None
         rt.launch("volume_count", size, local_size=BLOCK_GROUP, **rays, count=count, t_walk=t_walk)
         exclusive_scan(rt, count, offsets)
         total = last_value(offsets) + last_value(count[:n_rays])
-        check_buffer(rt, 4 * total, f"the volume selection of {n_rays} rays ({total} entries)")
+        check_buffer(rt, entry_bytes(rt) * total, f"the volume selection of {n_rays} rays ({total} entries)")
         ids, weights = device_empty(rt, max(total, 1), np.int32), device_empty(rt, max(total, 1), np.float32)
         rt.launch("volume_fill", size, local_size=BLOCK_GROUP, **rays, offsets=offsets, out_ids=ids,
                   out_w=weights,
                   t_sel=t_sel, t_rem=t_rem)
     else:
-        check_buffer(rt, 4 * n_rays * k, f"the {sampler} selection of {n_rays} rays x K={k}")
+        check_buffer(rt, entry_bytes(rt) * n_rays * k, f"the {sampler} selection of {n_rays} rays x K={k}")
         ids, weights = device_empty(rt, n_rays * k, np.int32), device_empty(rt, n_rays * k, np.float32)
         offsets = row_offsets(q, n_rays, k)
 
@@ -396,12 +403,12 @@ def gather_rays(selection: Selection, rays) -> Selection:
         pixels = np.stack([rays % width, rays // width], 1).astype(np.int32)
     else:
         pixels = np.ascontiguousarray(selection.pixels[rays], np.int32)
-    q = selection.plan.runtime.queue
+    rt = selection.plan.runtime
     n = len(rays)
     if n == 0:
-        return Selection(selection.plan, selection.sampler, selection.k, pixels, cla.empty(q, 1, np.int32),
-                         cla.empty(q, 1, np.float32), cla.zeros(q, 1, np.int32),
-                         *(cla.empty(q, 1, dt) for dt in (np.int32, np.float32, np.float32, np.float32)))
+        return Selection(selection.plan, selection.sampler, selection.k, pixels, device_empty(rt, 1, np.int32),
+                         device_empty(rt, 1, np.float32), device_zeros(rt, 1, np.int32),
+                         *(device_zeros(rt, 1, dt) for dt in (np.int32, np.float32, np.float32, np.float32)))
     k = selection.k
     if selection.sampler == "volume":
         all_offsets, all_count = selection.spans()
@@ -412,13 +419,14 @@ def gather_rays(selection: Selection, rays) -> Selection:
         offsets = np.arange(0, n * k, k, dtype=np.int32)
         source = (rays[:, None] * k + np.arange(k)).ravel()
     if source.size == 0:
-        ids, weights = cla.empty(q, 1, np.int32), cla.empty(q, 1, np.float32)
+        ids, weights = device_empty(rt, 1, np.int32), device_empty(rt, 1, np.float32)
     else:
-        index = cla.to_device(q, source.astype(np.int32))
+        index = to_device(rt, source, np.int32)
         ids, weights = cla.take(selection.ids, index), cla.take(selection.weights, index)
-    ray_index = cla.to_device(q, rays.astype(np.int32))
+    ray_index = to_device(rt, rays, np.int32)
     per_ray = [cla.take(a, ray_index) for a in (selection.count, selection.t_walk, selection.t_sel, selection.t_rem)]
-    return Selection(selection.plan, selection.sampler, k, pixels, ids, weights, cla.to_device(q, offsets), *per_ray)
+    return Selection(selection.plan, selection.sampler, k, pixels, ids, weights, to_device(rt, offsets, np.int32),
+                     *per_ray)
 
 
 @dataclass
@@ -456,9 +464,8 @@ def _remap(selection: Selection, ids: np.ndarray, entries: np.ndarray, lut: np.n
         raise ValueError(f"lut maps the selection's ids outside 0..{n_rows - 1}")
     remapped = np.full(ids.shape, -1, np.int32)
     remapped[entries] = mapped
-    q = selection.plan.runtime.queue
     return CompactSelection(selection.plan, selection.sampler, selection.k, selection.pixels,
-                            cla.to_device(q, remapped), selection.weights, selection.offsets, selection.count,
+                            to_device(selection.plan.runtime, remapped, np.int32), selection.weights, selection.offsets, selection.count,
                             selection.t_walk, selection.t_sel, selection.t_rem, n_rows=int(n_rows))
 
 
@@ -509,4 +516,4 @@ def concat_selections(selections: list[Selection]) -> Selection:
                for name in ("count", "t_walk", "t_sel", "t_rem")}
     extra = {"n_rows": first.n_rows} if isinstance(first, CompactSelection) else {}
     return type(first)(first.plan, first.sampler, first.k, np.concatenate([s.pixels for s in parts]),
-                       offsets=cla.to_device(q, offsets), **entries, **per_ray, **extra)
+                       offsets=to_device(first.plan.runtime, offsets, np.int32), **entries, **per_ray, **extra)

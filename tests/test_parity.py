@@ -1,0 +1,204 @@
+"""The same results on every OpenCL implementation installed here: Intel's CPU runtime and Mesa's
+rusticl (privately, by tests/drivers/install.sh) against PoCL, the system's default.
+
+A child process per (implementation, launch shape, run) renders every public path forward and
+backward on the scenes (:func:`render_all`): rasterize with each sampler (image, alpha, feature
+gradient), a pixel subset, the SH colour kernel, render_volume_fused (image, alpha, depth) and
+rasterization (image and gradients w.r.t. means, quats, scales, opacities and colours). Each
+implementation runs twice with one fresh kernel cache: the first run builds from source, the
+second loads pyopencl's cached binaries (which carry no argument info on Intel's runtime). Every
+output must equal PoCL's within 1e-4 of its largest value, or the implementation must be refused
+with a message that names what failed (rusticl 22.3: the loop limit). With the self-check off,
+a refused implementation must still never crash. Skipped for implementations not installed.
+
+Run as a script (``python tests/test_parity.py OUT.npz SCENE...``) this file is the child.
+"""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from qr_cl.runtime.implementations import environment, installed
+
+W, H, CHANNELS, K = 160, 120, 64, 10
+RTOL = 1e-4
+#: Scenes of the default run; "dense" (the 300k-Gaussian room) runs in the slow suite.
+SCENES = ["random", "fox", "donut"]
+SHAPES = ["cpu", "gpu"]
+
+
+# ---------------------------------------------------------------- the child
+
+def load(name: str, data: Path):
+    """(Gaussians, Camera at W x H) of a scene: "random" (procedural, always there), "fox",
+    "donut" (../shared/data) or "dense" (the procedural 300k-Gaussian room)."""
+    import qr_cl
+    from qr_cl.app.procedural import dense_room, procedural_scene
+    from qr_cl.scene import load_layout_instance
+    if name == "random":
+        g = procedural_scene(3000, seed=2)
+        return g, qr_cl.orbit_cameras(g.means, 1, W, H)[0]
+    if name == "fox":
+        g = qr_cl.load_ply(data / "wakufactory-fox" / "fox.ply")
+        return g, qr_cl.orbit_cameras(g.means, 1, W, H, up_axis=1)[0]
+    if name == "donut":
+        layout = data / "v3dg-donut" / "_SingleDonut.json"
+        g = qr_cl.load_ply(data / "v3dg-donut" / "donut_fused.ply").transformed(*load_layout_instance(layout))
+        return g, qr_cl.load_cameras(layout)[0].resized(W, H)
+    if name == "dense":
+        g, cam = dense_room()
+        return g, cam.resized(W, H)
+    raise ValueError(name)
+
+
+def render_all(g, cam) -> dict[str, np.ndarray]:
+    """Every public path's outputs for one scene and camera (float32 arrays by name)."""
+    import torch
+    import qr_cl
+    rng = np.random.default_rng(0)
+    n = len(g.means)
+    feats = rng.normal(size=(n, CHANNELS)).astype(np.float32)
+    weights = torch.from_numpy(rng.normal(size=(H, W, CHANNELS)).astype(np.float32))
+    geometry = (g.means, g.quats, g.scales, g.opacities)
+    out = {}
+    for sampler in ("volume", "quantile", "topk", "stratified"):
+        f = torch.from_numpy(feats).requires_grad_(True)
+        img, alpha, _ = qr_cl.rasterize(*geometry, f, cam.viewmat, cam.K, W, H, sampler=sampler, k=K)
+        (img * weights).sum().backward()
+        out.update({f"{sampler}/image": img.detach().numpy(), f"{sampler}/alpha": alpha.numpy(),
+                    f"{sampler}/dfeatures": f.grad.numpy()})
+    pixels = np.stack([rng.integers(0, W, 700), rng.integers(0, H, 700)], 1)
+    f = torch.from_numpy(feats).requires_grad_(True)
+    img, _, _ = qr_cl.rasterize(*geometry, f, cam.viewmat, cam.K, W, H, sampler="quantile", k=K, pixels=pixels)
+    (img * weights[pixels[:, 1], pixels[:, 0]]).sum().backward()
+    out.update({"pixels/image": img.detach().numpy(), "pixels/dfeatures": f.grad.numpy()})
+    img, _, _ = qr_cl.rasterize(*geometry, g.sh, cam.viewmat, cam.K, W, H, sh_degree=g.sh_degree)
+    out["sh/image"] = img.numpy()
+    img, alpha, meta = qr_cl.render_volume_fused(*geometry, feats, cam.viewmat, cam.K, W, H)
+    out.update({"fused/image": img.numpy(), "fused/alpha": alpha.numpy(), "fused/depth": meta["depth"]})
+    colours = torch.from_numpy(rng.uniform(0, 1, (n, 3)).astype(np.float32))
+    for sampler in ("volume", "quantile"):
+        params = [torch.from_numpy(np.asarray(a, np.float32)).requires_grad_(True)
+                  for a in (*geometry, colours)]
+        img, _, _ = qr_cl.rasterization(*params, torch.from_numpy(cam.viewmat[None]).float(),
+                                        torch.from_numpy(cam.K[None]).float(), W, H, sampler=sampler, k=K)
+        (img[0] * weights[..., :3]).sum().backward()
+        out[f"rasterization-{sampler}/image"] = img.detach().numpy()
+        for name, p in zip(("means", "quats", "scales", "opacities", "colors"), params):
+            out[f"rasterization-{sampler}/d{name}"] = p.grad.numpy()
+    return out
+
+
+def child(out: str, scenes: list[str]) -> None:
+    from qr_cl.runtime import runtime
+    from qr_cl.runtime.device import implementation
+    print(implementation(runtime().device), flush=True)
+    results = {}
+    for name in scenes:
+        g, cam = load(name, Path(os.environ["QR_CL_DATA"]))
+        results.update({f"{name}:{k}": v for k, v in render_all(g, cam).items()})
+    np.savez(out, **results)
+
+
+# ---------------------------------------------------------------- the parent
+
+def run_child(implementation: str, shape: str, cache: Path, out: Path, scenes: list[str], data: Path,
+              **env: str) -> subprocess.CompletedProcess:
+    """The child on ``implementation`` with ``shape`` launches, its kernel caches in ``cache``."""
+    environ = environment(implementation, QR_CL_LAUNCH=shape, XDG_CACHE_HOME=str(cache / "xdg"),
+                          QR_CL_CACHE=str(cache / "qr-cl"), QR_CL_DATA=str(data), PYTHONWARNINGS="ignore",
+                          **env)
+    return subprocess.run([sys.executable, __file__, str(out), *scenes], env=environ, capture_output=True,
+                          text=True, timeout=900)
+
+
+def scenes_here(shared: bool) -> list[str]:
+    return SCENES if shared else ["random"]
+
+
+def compare(got: dict, want: dict) -> list[str]:
+    """The outputs of ``got`` off ``want``'s by more than RTOL of want's largest value."""
+    bad = []
+    assert sorted(got) == sorted(want)
+    for key in sorted(want):
+        scale = max(float(np.abs(want[key]).max(initial=0)), 1e-30)
+        err = float(np.abs(got[key] - want[key]).max(initial=0)) / scale
+        if not err <= RTOL:
+            bad.append(f"{key}: {err:.2e}")
+    return bad
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory, data_dir):
+    """PoCL's outputs per launch shape (computed on first use)."""
+    shared = (data_dir / "wakufactory-fox" / "fox.ply").is_file()
+    done = {}
+
+    def get(shape: str, scenes: list[str]) -> dict:
+        if (shape, tuple(scenes)) not in done:
+            folder = tmp_path_factory.mktemp(f"pocl-{shape}")
+            run = run_child("pocl", shape, folder, folder / "out.npz", scenes, data_dir)
+            assert run.returncode == 0, run.stderr[-3000:]
+            done[shape, tuple(scenes)] = dict(np.load(folder / "out.npz"))
+        return done[shape, tuple(scenes)]
+    get.shared, get.data = shared, data_dir
+    return get
+
+
+def needs(name: str) -> None:
+    if name not in installed():
+        pytest.skip(f"{name} is not installed (bash tests/drivers/install.sh {name})")
+
+
+def check_equal_first_and_cached(name: str, shape: str, scenes: list[str], reference, folder: Path) -> None:
+    want = reference(shape, scenes)
+    for run_name in ("first", "cached"):
+        run = run_child(name, shape, folder, folder / f"{run_name}.npz", scenes, reference.data)
+        assert run.returncode == 0, f"{name} {shape} {run_name} run failed:\n{run.stderr[-3000:]}"
+        bad = compare(dict(np.load(folder / f"{run_name}.npz")), want)
+        assert not bad, f"{name}, {shape} shapes, {run_name} run differs from PoCL: {bad}"
+
+
+@pytest.mark.parametrize("shape", SHAPES)
+def test_intel_equals_pocl_first_and_cached(shape, reference, tmp_path):
+    needs("intel")
+    check_equal_first_and_cached("intel", shape, scenes_here(reference.shared), reference, tmp_path)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("shape", SHAPES)
+def test_intel_equals_pocl_on_the_dense_room(shape, reference, tmp_path):
+    needs("intel")
+    check_equal_first_and_cached("intel", shape, ["dense"], reference, tmp_path)
+
+
+@pytest.mark.parametrize("shape", SHAPES)
+def test_rusticl_is_equal_or_refused_by_name(shape, reference, tmp_path):
+    """Mesa 22.3's llvmpipe ends loops after 65535 iterations: refused, naming the loop limit."""
+    needs("rusticl")
+    run = run_child("rusticl", shape, tmp_path, tmp_path / "out.npz", ["random"], reference.data)
+    if run.returncode == 0:
+        assert not compare(dict(np.load(tmp_path / "out.npz")), reference(shape, ["random"]))
+        return
+    last = run.stderr.strip().splitlines()[-3:]
+    assert run.returncode == 1 and "NoDeviceError" in "\n".join(last), run.stderr[-3000:]
+    assert "rusticl" in run.stderr and "loop limit" in run.stderr, run.stderr[-3000:]
+
+
+@pytest.mark.parametrize("shape", SHAPES)
+def test_rusticl_never_crashes_with_the_check_off(shape, reference, tmp_path):
+    """Refusal aside: the kernels' wrong answers there must not become a crash (top-K's unwritten
+    counts once sent the backward's transpose into unmapped memory)."""
+    needs("rusticl")
+    run = run_child("rusticl", shape, tmp_path, tmp_path / "out.npz", scenes_here(reference.shared),
+                    reference.data, QR_CL_SELF_CHECK="off")
+    assert run.returncode == 0, f"rusticl {shape} (check off) died ({run.returncode}):\n{run.stderr[-3000:]}"
+
+
+if __name__ == "__main__":
+    child(sys.argv[1], sys.argv[2:])
