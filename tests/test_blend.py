@@ -166,7 +166,13 @@ def test_pixel_subset_blend_equals_full_rows(plan):
 def test_deferred_selection_blended_in_its_kernel_equals_select_then_blend(plan, sampler, channels, subset):
     """select(..., defer=True) followed by blend_forward runs the selection kernel with the blend
     fused in (CPU shapes): the same selection and the same image bytes as the two kernels, also
-    with a background and for a pixel subset; ready() alone gives the same selection."""
+    with a background and for a pixel subset; ready() alone gives the same selection.
+
+    Bytes on PoCL. Intel's CPU runtime compiles the selection arithmetic of the fused build apart
+    and differs in the last bits (up to 1e-6 absolute here): within 1e-5 of the largest value."""
+    same = (np.testing.assert_array_equal if "Portable Computing Language" in plan.runtime.device.platform.name
+            else lambda got, want, err_msg="": np.testing.assert_allclose(
+                got, want, rtol=0, atol=1e-5 * max(float(np.abs(want).max(initial=0)), 1.0), err_msg=err_msg))
     rng = np.random.default_rng(channels)
     features = device_rows(plan, rng.standard_normal((plan.splats.shape[0], channels)).astype(np.float32))
     background = rng.standard_normal(channels).astype(np.float32)
@@ -177,13 +183,12 @@ def test_deferred_selection_blended_in_its_kernel_equals_select_then_blend(plan,
     assert deferred.pending is not None
     got = blend_forward(deferred, features, channels, background).get()
     assert deferred.pending is None
-    np.testing.assert_array_equal(got, want)
-    np.testing.assert_array_equal(blend_forward(deferred, features, channels).get(),
-                                  blend_forward(eager, features, channels).get())
+    same(got, want)
+    same(blend_forward(deferred, features, channels).get(), blend_forward(eager, features, channels).get())
     alone = select(plan, sampler, 10, pixels, defer=True).ready()
     for sel in (deferred, alone):
         for key, value in eager.host().items():
-            np.testing.assert_array_equal(sel.host()[key], value, err_msg=key)
+            same(sel.host()[key], value, err_msg=key)
 
 
 @pytest.mark.parametrize("shift", [0, 1, 4])

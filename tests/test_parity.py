@@ -9,7 +9,8 @@ implementation runs twice with one fresh kernel cache: the first run builds from
 second loads pyopencl's cached binaries (which carry no argument info on Intel's runtime). Every
 output must equal PoCL's within 1e-4 of its largest value, or the implementation must be refused
 with a message that names what failed (rusticl 22.3: the loop limit). With the self-check off,
-a refused implementation must still never crash. Skipped for implementations not installed.
+a refused implementation must still never crash. The kernel-against-twin tests run on Intel's
+runtime too. Skipped for implementations not installed.
 
 Run as a script (``python tests/test_parity.py OUT.npz SCENE...``) this file is the child.
 """
@@ -177,6 +178,21 @@ def test_intel_equals_pocl_on_the_dense_room(shape, reference, tmp_path):
     check_equal_first_and_cached("intel", shape, ["dense"], reference, tmp_path)
 
 
+#: The kernel-against-twin test modules that also run on the other implementations.
+KERNEL_TESTS = ["test_blend.py", "test_samplers.py", "test_raster.py", "test_rasterization.py", "test_signatures.py"]
+
+
+def test_kernel_tests_pass_on_intel(tmp_path, data_dir):
+    needs("intel")
+    env = environment("intel", XDG_CACHE_HOME=str(tmp_path / "xdg"), QR_CL_CACHE=str(tmp_path / "qr-cl"),
+                      QR_CL_DATA=str(data_dir))
+    here = Path(__file__).resolve().parent
+    run = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
+                          *(str(here / t) for t in KERNEL_TESTS)], env=env, capture_output=True, text=True,
+                         timeout=900, cwd=here.parent)
+    assert run.returncode == 0, run.stdout[-4000:]
+
+
 @pytest.mark.parametrize("shape", SHAPES)
 def test_rusticl_is_equal_or_refused_by_name(shape, reference, tmp_path):
     """Mesa 22.3's llvmpipe ends loops after 65535 iterations: refused, naming the loop limit."""
@@ -195,7 +211,7 @@ def test_rusticl_never_crashes_with_the_check_off(shape, reference, tmp_path):
     """Refusal aside: the kernels' wrong answers there must not become a crash (top-K's unwritten
     counts once sent the backward's transpose into unmapped memory)."""
     needs("rusticl")
-    run = run_child("rusticl", shape, tmp_path, tmp_path / "out.npz", scenes_here(reference.shared),
+    run = run_child("rusticl", shape, tmp_path, tmp_path / "out.npz", ["fox"] if reference.shared else ["random"],
                     reference.data, QR_CL_SELF_CHECK="off")
     assert run.returncode == 0, f"rusticl {shape} (check off) died ({run.returncode}):\n{run.stderr[-3000:]}"
 

@@ -296,8 +296,10 @@ class Runtime:
         if key not in self._programs:
             constants = {**KERNEL_CONSTANTS, "ACC_FLOATS": self.accumulator_floats, **defines}
             source = kernel_source(file)
-            program = cl.Program(self.context, source).build(
-                options=[f"-D{k}={v}" for k, v in sorted(constants.items())])
+            with warnings.catch_warnings():      # some compilers (Intel's) always return a build log
+                warnings.simplefilter("ignore", cl.CompilerWarning)
+                program = cl.Program(self.context, source).build(
+                    options=[f"-D{k}={v}" for k, v in sorted(constants.items())])
             declared = kernel_signatures(source, constants)
             self._programs[key] = {}
             for k in program.all_kernels():
