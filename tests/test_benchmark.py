@@ -57,3 +57,15 @@ def test_compare_two_reports(report_dir, capsys):
     assert main(["bench", "--compare", path, path]) == 0
     table = capsys.readouterr().out
     assert "| 1.00 |" in table and "B / A" in table
+
+
+def test_implementations_side_by_side_lists_shared_rows_and_refusals():
+    from qr_cl.app.bench_implementations import side_by_side
+    meta = dict(device="D", platform="P", driver="1", compute_units=2, mode="smoke", date="today")
+    row = dict(scene="s", width=8, height=6, stage="selection", sampler="quantile", k=10, channels=0)
+    a = {"meta": meta, "results": [{**row, "min_s": 0.002}, {**row, "stage": "fused", "min_s": 0.1}]}
+    b = {"meta": {**meta, "device": "E"}, "results": [{**row, "min_s": 0.003}]}
+    text = side_by_side({"pocl": a, "intel": b}, {"rusticl": "loop limit"})
+    assert "**rusticl**: not run: loop limit" in text and "| pocl | intel |" in text
+    assert "| s | 8x6 | selection | quantile | 10 | - | 2.00 | 3.00 (1.50x) |" in text
+    assert "fused" not in text.split("| --- |")[-1]          # not shared: not in the table

@@ -204,6 +204,10 @@ def test_rusticl_is_equal_or_refused_by_name(shape, reference, tmp_path):
     last = run.stderr.strip().splitlines()[-3:]
     assert run.returncode == 1 and "NoDeviceError" in "\n".join(last), run.stderr[-3000:]
     assert "rusticl" in run.stderr and "loop limit" in run.stderr, run.stderr[-3000:]
+    devices = subprocess.run([sys.executable, "-m", "qr_cl.app.cli", "devices"], env=environment("rusticl"),
+                             capture_output=True, text=True, timeout=300)
+    assert devices.returncode == 2 and "rusticl" in devices.stdout and "loop limit" in devices.stdout
+    assert "qr-cl refuses to render here" in devices.stdout
 
 
 @pytest.mark.parametrize("shape", SHAPES)

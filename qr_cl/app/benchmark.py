@@ -27,12 +27,14 @@ import torch
 from tqdm import tqdm
 
 from ..render import rasterization, rasterize, render_volume_fused
-from ..runtime import SAMPLERS, channel_layout, padded_rows, runtime, to_device
+from ..render.selfcheck import checked_runtime
+from ..runtime import SAMPLERS, channel_layout, padded_rows, to_device
 from ..scene import Gaussians, load_ply, look_at, orbit_cameras
 from ..stages import RasterPlan, bin_and_sort, blend_backward, blend_forward, project, render_fused, select
 from . import roofline
 from .images import plt  # pyplot on the file-only Agg backend
 from .procedural import dense_room, procedural_scene
+from .bench_implementations import run_all
 from .timing import measure
 
 REPORT_VERSION = 1
@@ -96,7 +98,7 @@ class Sweep:
     """Runs configurations on one device and collects result rows."""
 
     def __init__(self, rounds: int, progress) -> None:
-        self.rt = runtime()
+        self.rt = checked_runtime()
         self.rounds = rounds
         self.rows: list[dict] = []
         self.progress = progress
@@ -350,7 +352,7 @@ def run_sweep(mode: str, out: Path, data: Path | None = None) -> dict:
 
     cfg = _config(mode)
     quick = mode != "full"
-    rt = runtime()
+    rt = checked_runtime()
     out.mkdir(parents=True, exist_ok=True)
     scenes_by_res = {res: (real_scenes(data, *res) if cfg["real"] else [])
                      or [synthetic_scene(50_000 if cfg["real"] else 2_000, *res)] for res in cfg["resolutions"]}
@@ -705,6 +707,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "donut_fused.ply; default $QR_CL_DATA): timed beside the synthetic ones")
     parser.add_argument("--compare", nargs=2, metavar=("A.json", "B.json"),
                         help="print B/A time ratios of two reports instead of measuring")
+    parser.add_argument("--implementations", action="store_true",
+                        help="run the sweep on PoCL and on every implementation tests/drivers/install.sh "
+                             "installed, one after the other, and write implementations.md side by side")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -716,8 +721,12 @@ def run(args: argparse.Namespace) -> int:
         os.environ["QR_CL_DEVICE"] = args.device
     out = Path(args.out)
     start = time.perf_counter()
-    run_sweep("smoke" if args.smoke else "quick" if args.quick else "full", out,
-              Path(args.data) if args.data else None)
+    mode = "smoke" if args.smoke else "quick" if args.quick else "full"
+    if args.implementations:
+        print(run_all(mode, out, Path(args.data) if args.data else None))
+        print(f"finished in {time.perf_counter() - start:.0f} s. Report: {(out / 'implementations.md').resolve()}")
+        return 0
+    run_sweep(mode, out, Path(args.data) if args.data else None)
     print((out / "summary.md").read_text())
     print(f"bench finished in {time.perf_counter() - start:.0f} s. Report: {out.resolve()} "
           "(report.json, summary.md, time_vs_k.png, time_vs_c.png, roofline.png, complexity.png)")

@@ -11,7 +11,9 @@ from pathlib import Path
 from tqdm import tqdm
 
 from ..render import render_volume_fused
+from ..render.selfcheck import check_in_child
 from ..runtime import NoDeviceError, choose_device, list_devices, trial_run
+from ..runtime.device import implementation, self_check_enabled
 from ..scene import SceneFormatError, load_cameras, load_layout_instance, load_scene, orbit_cameras
 from .images import save_alpha, save_depth, save_rgb
 
@@ -25,16 +27,24 @@ DELEGATED = {"demo": ("demo", "the embedded default job (see README)"),
 
 
 def _cmd_devices(args: argparse.Namespace) -> int:
+    """Every device with its implementation and the self-check's verdict (trial kernels and loop
+    probe here, the render check in a child process per device); * marks the one qr-cl uses."""
     devices = list_devices()
-    chosen = choose_device()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        try:
+            chosen = choose_device().int_ptr
+        except NoDeviceError:
+            chosen = None
     for pi, di, platform, dev in devices:
-        mark = "*" if dev.int_ptr == chosen.int_ptr else " "
-        status = trial_run(dev) or "trial kernel ok"
-        print(f"{mark} {platform.name.strip()}:{di}  [{pi}:{di}]  {dev.name.strip()}  "
+        status = trial_run(dev) or ("trial kernels ok, " + (check_in_child(pi, di) if self_check_enabled()
+                                                            else "self-check off (QR_CL_SELF_CHECK)"))
+        print(f"{'*' if dev.int_ptr == chosen else ' '} [{pi}:{di}] {implementation(dev)}  "
               f"({'GPU' if dev.type & 4 else 'CPU' if dev.type & 2 else 'other'}, "
               f"{dev.max_compute_units} compute units, {dev.global_mem_size >> 20} MiB) - {status}")
-    print("* = the device qr-cl uses (QR_CL_DEVICE=cpu|gpu|<platform substring>:<index> chooses another)")
-    return 0
+    print("* = the device qr-cl uses (QR_CL_DEVICE=cpu|gpu|<platform substring>:<index> chooses another)"
+          if chosen is not None else "no device passed the self-check: qr-cl refuses to render here")
+    return 0 if chosen is not None else 2
 
 
 def render_views(gaussians, cameras, out: Path, sh_degree: int | None, prefix: str = "") -> float:

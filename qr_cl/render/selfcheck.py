@@ -12,6 +12,8 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -123,3 +125,24 @@ def checked_runtime() -> Runtime:
     record.parent.mkdir(parents=True, exist_ok=True)
     record.write_text(json.dumps({"device": implementation(rt.device), "passed": True}))
     return rt
+
+
+def check_in_child(platform_index: int, device_index: int) -> str:
+    """The render check of device ``device_index`` of platform ``platform_index`` in a child
+    process (each process renders on one device): "render check passed" or what failed."""
+    env = {**os.environ, "PYOPENCL_CTX": f"{platform_index}:{device_index}"}
+    env.pop("QR_CL_DEVICE", None)
+    run = subprocess.run([sys.executable, "-c", "from qr_cl.render.selfcheck import report; report()"], env=env,
+                         capture_output=True, text=True, timeout=600)
+    lines = run.stdout.strip().splitlines()
+    return lines[-1] if lines else f"render check died ({run.returncode}): {run.stderr.strip()[-300:]}"
+
+
+def report() -> None:
+    """Print the verdict of :func:`checked_runtime` on this process's device in one line."""
+    try:
+        checked_runtime()
+    except NoDeviceError as exc:
+        print("render check failed: " + " ".join(str(exc).split("\n")[1:]).strip())
+    else:
+        print("render check passed")
