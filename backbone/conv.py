@@ -44,12 +44,11 @@ from .sparse import KernelMap, RowBlock, SparseTensor
 
 #: Row blocks of a map that has at least :data:`MIN_SPLIT_PAIRS` pairs (fixed: results depend on it).
 SPLIT = 2
-#: Pairs (identity rows included) from which a map is split (training steps on the demo rooms:
-#: 4096 gave 1.57 cores busy and 161 ms a step, 16384 1.50 and 166 ms).
+#: Pairs (identity rows included) from which a map is split into row blocks; smaller maps run
+#: whole, where a block's fixed cost (torch calls, a thread hand-over) would outweigh its share.
 MIN_SPLIT_PAIRS = 4096
 #: Bytes of gathered and product rows per chunk of offsets (one gather and one scatter each):
-#: fewer, larger ops than one per offset, small enough to stay in cache (4 MiB was fastest on
-#: the demo rooms, 256 KiB and 16 MiB slower).
+#: fewer, larger ops than one per offset, small enough to stay in cache.
 CHUNK_BYTES = 1 << 22
 
 _arena = threading.local()

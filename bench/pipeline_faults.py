@@ -13,7 +13,7 @@ release: only ``qr_cl.rasterize``, ``qr_cl.orbit_cameras`` and the procedural sc
 
     python bench/pipeline_faults.py                       # both paths, this checkout
     perf stat -e page-faults,task-clock python bench/pipeline_faults.py --what render --warm 5
-    python bench/pipeline_faults.py --compare /tmp/venv-base/bin/python --rounds 3
+    python bench/pipeline_faults.py --compare <other-venv>/bin/python --rounds 3
 
 ``--compare PY`` runs the script under ``PY`` and under this interpreter alternately, ``--rounds``
 times each (back to back), and prints the per-warm-call minima of both and their ratio.

@@ -1,6 +1,6 @@
 """This checkout against another install of qr-cl (e.g. an earlier release in its own venv), back to back.
 
-The renderer's figures of issue 10, on the real fox (50k Gaussians; with ``--data``) and the
+The renderer's headline figures, on the real fox (50k Gaussians; with ``--data``) and the
 300k-Gaussian dense room (``qr_cl.app.procedural.dense_room``), 640x480, each public call timed
 from its arguments to the image (plan included):
 
@@ -15,8 +15,8 @@ The scenes and cameras are made once by this checkout and handed to both install
 both render the same Gaussians. Only public names are used (``qr_cl.rasterize``, and
 ``qr_cl.render_volume_fused`` or, in releases before it, ``sampler="volume_fused"``)::
 
-    python -m venv /tmp/base && /tmp/base/bin/pip install torch==2.13.0 /path/to/old/checkout
-    python bench/release_ab.py --base /tmp/base/bin/python --data ../shared/data --rounds 2
+    python -m venv <venv> && <venv>/bin/pip install torch==2.13.0 <old-checkout>
+    python bench/release_ab.py --base <venv>/bin/python --data ../shared/data --rounds 2
 
 Each round runs the base, then this checkout, in fresh processes; the table gives the minimum
 over rounds and calls of each, the speed-up, and each build's fused V-Render over its Q-Render.

@@ -4,8 +4,8 @@
 
 Full mode: the fox scene (50k Gaussians, orbit camera 1 of 8) at 640x480, C = 512, K in {10, 40};
 smoke mode (default run): a tiny procedural scene at 64x48. Every timed call ends with
-``queue.finish()``. The blend writes into a reused device buffer (a fresh 600 MB buffer costs
-~0.3 s of page faults on PoCL) and leaves the image on the device; the fused V-Render is timed as
+``queue.finish()``. The blend writes into a reused device buffer (a fresh 600 MB buffer would
+time its page faults) and leaves the image on the device; the fused V-Render is timed as
 rasterize() calls it (its image lands in a host array through a zero-copy buffer).
 """
 import numpy as np

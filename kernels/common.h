@@ -1,4 +1,4 @@
-/* Shared math of the qr-cl kernels: 3DGS conventions (see NOTES.md / the original 3DGS).
+/* Shared math of the qr-cl kernels, in the original 3DGS conventions (see docs/design.md).
 
    The constants TILE (tile side in px), ALPHA_MIN (smaller alphas are skipped), ALPHA_MAX (alpha
    clamp), T_MIN (V-Render stops before T would drop to it) and the SH basis constants SH_C0,
@@ -72,8 +72,7 @@ typedef CAT(int, TILE) lanei;
 
 /* any() and all() of a lane mask (each lane -1 or 0, as vector comparisons give them): the lanes
    narrowed to bytes and tested as whole 64-bit words. PoCL's built-ins test the lanes one at a
-   time, a branch each, which cost the walk more than its arithmetic (fox, 640x480: Q-Render K=10
-   selection 17.4 -> 15.3 ms). */
+   time, a branch each, which costs the walk more than its arithmetic. */
 static inline int lanes_any(lanei m) {
 #if TILE == 16
     const ulong2 b = as_ulong2(convert_char16(m));
@@ -111,8 +110,8 @@ static inline uint lane_bits(lanei m) {
 
 /* for (each lane l set in mask m, in increasing order): visits only those lanes. For masks with
    few lanes set, such as the lanes that cross a Q-Render boundary at a Gaussian, this beats a
-   loop over all TILE lanes with a test each (dense room, K=40 selection 208-210 -> 183-189 ms);
-   for masks with most lanes set (the V-Render and top-K writes) the plain loop was faster. */
+   loop over all TILE lanes with a test each; for masks with most lanes set (the V-Render and
+   top-K writes) the plain loop is faster. */
 #define FOR_LANES(m, l) \
     for (uint bits_##l = lane_bits(m), l = 0; bits_##l && (l = 31 - clz(bits_##l & (0u - bits_##l)), 1); \
          bits_##l &= bits_##l - 1)
@@ -334,8 +333,7 @@ typedef CAT(float, VW) vec_t;
 /* VSTREAM(v, i, p): VSTORE of an output that the kernel does not read again, as a non-temporal
    store where the compiler offers one (clang's builtin) and the address is aligned to vec_t:
    the line is written without being read first (no read-for-ownership) and does not evict
-   cached inputs. Measured on PoCL (AVX-512, the fox at 640x480 x 512-D): Q-Render K=40 blend
-   41.8 -> 25.4 ms, fused V-Render 73.2 -> 63.5 ms. */
+   cached inputs. */
 #if defined(__has_builtin)
 #if __has_builtin(__builtin_nontemporal_store)
 #define HAVE_NONTEMPORAL_STORE
@@ -353,11 +351,10 @@ typedef CAT(float, VW) vec_t;
 
 /* RV: the vectors of a row that a loop over entries accumulates at a time: the largest of 16, 8,
    4, 2, 1 that divides NV with RV * VW <= ACC_FLOATS (the floats the device keeps in registers,
-   from the build), in fully unrolled loops so that the accumulators stay in registers. PoCL kept
+   from the build), in fully unrolled loops so that the accumulators stay in registers. PoCL keeps
    an array of NV accumulators indexed in a loop on the stack: a load and a store of each per
-   entry (perf annotate of blend). Chunks of RV = 16 vectors took the dense room's Q-Render K=40
-   blend from 138 to 93 ms and its fused V-Render blend from 1146 to 690 ms on AVX-512, the same
-   bytes; on AVX2 (16 registers) 16 float16 accumulators spill again and RV = 4 is faster. */
+   entry. RV changes no bytes; the budget follows the register file (on AVX2's 16 registers,
+   16 float16 accumulators would spill). */
 #ifdef NV
 #if NV % 16 == 0 && 16 * VW <= ACC_FLOATS
 #define RV 16

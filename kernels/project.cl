@@ -1,6 +1,6 @@
 /* EWA projection, TILE Gaussians per work-item: lane l of the TILE-wide vectors (lanef, lanei
    of common.h) is Gaussian i0 + l, so the per-Gaussian math runs as SIMD code (PoCL does not
-   vectorize this kernel across work-items: fox, 50k Gaussians, the EWA part 2.4 -> 0.34 ms).
+   vectorize this kernel across work-items).
    3DGS conventions, 0.3 px low-pass. */
 #include "common.h"
 

@@ -114,8 +114,7 @@ static inline lanei next_boundary(lanei k, lanef T_test, lanei cross, int K) {
 /* Q-Render selection, Algorithm 1 of the paper, for each lane: a Gaussian whose T_test crosses
    the lane's next boundary 1 - (k+1)/(K+1) is a quantile Gaussian (w^Q = T^Q alpha', written
    to the lane's row); the walk stops once T_test < 1/(K+1). The crossing lanes' T^Q and k are
-   updated as vectors: against a per-lane update searching one boundary at a time, the fox's K=40
-   selection took 11.4-12.2 instead of 14.7-15.1 ms, the dense room's 144 instead of 158-160. */
+   updated as vectors (next_boundary), not lane by lane one boundary at a time. */
 __kernel void select_quantile(BLOCK_ARGS, K_ROWS_ARGS) {
     BLOCK_SETUP
     const float stop = 1.f / (float)(K + 1);

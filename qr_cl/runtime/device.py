@@ -280,8 +280,7 @@ class Runtime:
         """Floats of a feature row a blend loop keeps in registers at a time (``ACC_FLOATS`` of
         kernels/common.h): about half the vector register file, from the native float vector
         width: 16 lanes (AVX-512: 32 registers) give 256, 8 lanes (AVX2: 16 registers) 64, 4
-        lanes (SSE, NEON) 32. More spills the accumulators to the stack: on an AVX2 CPU (PoCL,
-        Zen 3) 256 floats made the dense room's K=40 blend 243 against 218-222 ms at 32-64."""
+        lanes (SSE, NEON) 32. More spills the accumulators to the stack."""
         width = max(1, int(self.device.native_vector_width_float))
         return width * width if width >= 8 else 8 * width
 

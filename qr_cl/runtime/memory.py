@@ -71,11 +71,8 @@ def check_channels(channels: int) -> None:
 
 
 #: CPU shapes: the most vectors of a row one work-item blends (512 floats: a whole 512-D row;
-#: the kernels accumulate them RV = 16 vectors at a time in registers, kernels/common.h).
-#: Measured on PoCL (640x480, 512-D): 4 vectors a work-item -> 32 took the fox's Q-Render K=40
-#: blend from 21.5-22.7 to 14.5-15.9 ms and the dense room's from 211-218 to 138-143 ms, and the
-#: fox's fused V-Render from 67 to 50 ms: each entry's id, weight and row address are read once
-#: per row instead of once per 64 floats.
+#: the kernels accumulate them RV vectors at a time in registers, kernels/common.h), so that each
+#: entry's id, weight and row address are read once per row instead of once per chunk.
 CPU_ROW_VECTORS = 32
 
 
@@ -260,8 +257,8 @@ class HostPool:
     """Page-aligned host arrays of at least ``min_bytes`` kept between calls (at most
     ``max_bytes`` in all), so that large outputs of warm calls reuse memory that is already
     mapped instead of page-faulting fresh memory in: glibc maps large allocations (always above
-    32 MB) freshly and returns them to the system on free, and here even a 200 KB numpy array
-    was seen to page-fault in again on every allocation.
+    32 MB; smaller ones too, depending on its adaptive mmap threshold) freshly and returns them
+    to the system on free.
 
     :meth:`empty` hands out a view of a pooled buffer and reuses a buffer only when nothing but
     the pool references it: every numpy view of it references it (``.base``) and a torch tensor
