@@ -65,13 +65,23 @@ def test_backward_twice_identical_bytes(random_scene):
     assert first.numpy().tobytes() == second.numpy().tobytes()
 
 
-def test_no_geometry_gradients(random_scene):
+def test_rasterize_and_rasterization_share_the_engine(random_scene):
+    """Both public calls render through one engine: the same image and the same gradients w.r.t.
+    features and Gaussians for the same inputs (rasterization normalises quats, here unit)."""
     m, q, s, o, v, K, w, h = random_scene
-    means = torch.from_numpy(m).requires_grad_(True)
-    features = torch.randn(len(m), 4, requires_grad=True)
-    render, _, _ = qr_cl.rasterize(means, q, s, o, features, v, K, w, h, sampler="topk", k=3)
-    render.sum().backward()
-    assert means.grad is None and features.grad is not None and features.grad.abs().sum() > 0
+    features = torch.randn(len(m), 4)
+    inputs = [[torch.from_numpy(a).requires_grad_(True) for a in (m, q, s, o)] + [features.clone().requires_grad_(True)]
+              for _ in range(2)]
+    a, _, _ = qr_cl.rasterize(*inputs[0], v, K, w, h, sampler="topk", k=3)
+    b, _, _ = qr_cl.rasterization(*inputs[1][:4], inputs[1][4], torch.from_numpy(v)[None], torch.from_numpy(K)[None],
+                                  w, h, sampler="topk", k=3)
+    weights = torch.randn(h, w, 4)
+    (a * weights).sum().backward()
+    (b[0] * weights).sum().backward()
+    torch.testing.assert_close(a, b[0], rtol=1e-6, atol=1e-6)
+    for name, x, y in zip(("means", "quats", "scales", "opacities", "features"), *inputs):
+        assert x.grad is not None and x.grad.abs().sum() > 0, name
+        torch.testing.assert_close(x.grad, y.grad, rtol=1e-5, atol=1e-6 * float(y.grad.abs().max()), msg=name)
 
 
 def test_fused_volume_without_grad_matches_selection_path(random_scene):

@@ -287,16 +287,16 @@ def test_alpha_gradients_follow_the_derivation(random_scene, sampler, k):
 
 
 def test_pixel_subset_gradients_equal_twin(random_scene):
-    """RasterFunction on a pixel subset (View.pixels; the kernels' non-full ray path)."""
-    from qr_cl.render import RasterFunction, View, view_selection
+    """The engine on a pixel subset (View.pixels; the kernels' non-full ray path)."""
+    from qr_cl.render import View, render_view
     m, q, s, o, v, K, w, h = random_scene
     rng = np.random.default_rng(9)
     pixels = rng.integers(0, [w, h], (300, 2)).astype(np.int32)
     colors = rng.random((len(m), 3)).astype(np.float32)
     inputs = tensors(m, q, s, o, colors, grad=True)
     view = View(v, K, w, h, sampler="quantile", k=5, pixels=pixels)
-    sel = view_selection(*inputs[:4], view)
-    image, _ = RasterFunction.apply(*inputs, None, sel, view)
+    out = render_view(*inputs, None, view)
+    image, sel = out.image, out.selections[0]
     target = torch.randn(image.shape)
     (image * target).sum().backward()
     twin = [t.detach().double().requires_grad_(True) for t in inputs]

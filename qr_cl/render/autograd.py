@@ -4,6 +4,7 @@
 Selection (GS-Net: the Gaussians are frozen, so the geometry is a constant of the graph).
 :class:`RasterFunction`: the whole render of one camera, with gradients w.r.t. the Gaussians too
 (means, quats, scales, opacities; the selection itself is piecewise constant in them).
+:class:`SHColours`: the colour stage (sh.cl), with gradients w.r.t. SH coefficients and means.
 """
 from __future__ import annotations
 
@@ -15,11 +16,12 @@ import torch
 from ..runtime import channel_layout, check_channels, device_rows, host_empty, shared_array, to_device
 from ..stages.blend import blend_backward, blend_backward_alpha, blend_forward, splat_backward
 from ..stages.project import project_backward
-from ..stages.select import Selection, select
-from .plan import rasterize_plan
+from ..stages.select import Selection
+from ..stages.sh import sh_backward, sh_colors
+from .selfcheck import checked_runtime
 
 
-def _host_rows(tensor: torch.Tensor):
+def host_rows(tensor: torch.Tensor) -> np.ndarray:
     """A numpy view of a [R, C] tensor's rows (float32 on the CPU; converted only otherwise)."""
     return tensor.detach().to("cpu", torch.float32).numpy()
 
@@ -64,7 +66,7 @@ def _blend_image(sel: Selection, features: torch.Tensor, background: torch.Tenso
     cstride = channel_layout(channels)[2]
     bg = None if background is None else background.detach().cpu().numpy()
     host, image = _output(sel.n_rays, channels, cstride)
-    with device_rows(rt, _host_rows(features), cstride) as rows, shared_array(rt, host, "w") as out:
+    with device_rows(rt, host_rows(features), cstride) as rows, shared_array(rt, host, "w") as out:
         blend_forward(sel, rows, channels, bg, out=out)
     return image.to(features.dtype)
 
@@ -74,7 +76,7 @@ def _feature_grad(sel: Selection, grad_image: torch.Tensor, channels: int) -> to
     rt = sel.plan.runtime
     cstride = channel_layout(channels)[2]
     host, d = _output(sel.n_gaussians, channels, cstride)
-    with device_rows(rt, _host_rows(grad_image), cstride) as dimage, shared_array(rt, host, "w") as out:
+    with device_rows(rt, host_rows(grad_image), cstride) as dimage, shared_array(rt, host, "w") as out:
         blend_backward(sel, dimage, channels, out=out)
     return d.to(grad_image.dtype)
 
@@ -113,20 +115,11 @@ class View:
     pixels: np.ndarray | None = None
 
 
-def view_selection(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
-                   view: View) -> Selection:
-    """The Selection of :class:`View` ``view`` for the Gaussians (means [N,3], unit quats [N,4],
-    scales [N,3], opacities [N]; their values only): plan, then select."""
-    geometry = [_host_rows(t) for t in (means, quats, scales, opacities)]
-    plan = rasterize_plan(*geometry, view.viewmat, view.K, view.width, view.height, view.near, view.far)
-    return select(plan, view.sampler, max(view.k, 1), view.pixels)
-
-
 class RasterFunction(torch.autograd.Function):
     """(image [P,C], alpha [P,1]) = the render of Gaussians (means [N,3], unit quats [N,4], scales
     [N,3], opacities [N], features [N,C], background [C] or None) for one :class:`View`, through
-    its Selection (:func:`view_selection` of the same Gaussians), as
-    :func:`qr_cl.render.rasterize`; alpha = 1 - the transmittance where the walk stopped.
+    its Selection (of the same Gaussians, :func:`qr_cl.render.engine.render_view`); alpha = 1 -
+    the transmittance where the walk stopped.
 
     Backward (deterministic: every per-Gaussian sum runs over the selection's transpose in a fixed
     order): features and background as :class:`BlendFunction`; the geometry by
@@ -155,7 +148,7 @@ class RasterFunction(torch.autograd.Function):
         means, quats, scales, features, background = ctx.saved_tensors
         grads = [None] * 4
         if any(ctx.needs_input_grad[:4]):
-            geometry = [_host_rows(t) for t in (means, quats, scales)]
+            geometry = [host_rows(t) for t in (means, quats, scales)]
             grads = _geometry_grads(sel, view, geometry, features, background, grad_image, grad_alpha)
         d_features = _feature_grad(sel, grad_image, features.shape[1]) if ctx.needs_input_grad[4] else None
         d_background = _background_grad(sel, grad_image) if ctx.needs_input_grad[5] else None
@@ -178,10 +171,31 @@ def _geometry_grads(sel: Selection, view: View, geometry: list[np.ndarray], feat
         if grad_alpha is not None:
             d_trem -= grad_alpha[:, 0].double()
         d_trem = d_trem.numpy()
-    with device_rows(rt, _host_rows(features), cstride) as rows, \
-            device_rows(rt, _host_rows(grad_image), cstride) as dimage:
+    with device_rows(rt, host_rows(features), cstride) as rows, \
+            device_rows(rt, host_rows(grad_image), cstride) as dimage:
         d_alpha = blend_backward_alpha(sel, rows, dimage, channels, d_trem)
     d_splats = splat_backward(sel, d_alpha)
     dev = [to_device(rt, a) for a in geometry]
     out = project_backward(rt, *dev, sel.plan.radii, view.viewmat, view.K, view.width, view.height, d_splats)
     return [torch.from_numpy(a.get()).to(grad_image.dtype) for a in out]
+
+
+class SHColours(torch.autograd.Function):
+    """RGB [N,3] = max(SH(dir) . sh + 0.5, 0) of SH coefficients sh [N,(d+1)^2,3] (d <= 3), dir =
+    normalize(means [N,3] - campos [3]), by sh.cl; backward by its ``sh_backward`` kernel to sh
+    and means (the camera centre gets none)."""
+
+    @staticmethod
+    def forward(ctx, means: torch.Tensor, sh: torch.Tensor, campos: np.ndarray):
+        rt = checked_runtime()
+        means_dev = to_device(rt, host_rows(means))
+        sh_host = np.ascontiguousarray(sh.detach().to("cpu", torch.float32).numpy())
+        colors = sh_colors(rt, means_dev, sh_host, campos)
+        ctx.stage = (rt, means_dev, sh_host, campos, colors)
+        return torch.from_numpy(colors.get()[:, :3].copy()).to(sh.dtype)
+
+    @staticmethod
+    def backward(ctx, grad_rgb: torch.Tensor):
+        rt, means_dev, sh_host, campos, colors = ctx.stage
+        d_sh, d_means = sh_backward(rt, means_dev, sh_host, campos, colors, host_rows(grad_rgb))
+        return torch.from_numpy(d_means).to(grad_rgb.dtype), torch.from_numpy(d_sh).to(grad_rgb.dtype), None

@@ -16,8 +16,8 @@ import torch
 
 from ..runtime import TILE
 from ..stages.select import check_sampler
-from ..stages.sh_ref import sh_to_rgb
-from .autograd import RasterFunction, View, view_selection
+from .autograd import View
+from .engine import gaussian_tensors, render_view, sh_colours
 
 RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
 
@@ -57,27 +57,6 @@ def _per_camera(x: torch.Tensor, n_cameras: int, ndim: int, name: str) -> list[t
                      f"a leading camera dimension of {n_cameras}")
 
 
-def _colours(colors: torch.Tensor, means: torch.Tensor, viewmat: torch.Tensor, sh_degree: int | None) -> torch.Tensor:
-    """[N, D] colours of one camera: as given, or RGB from SH [N, K, 3] (the first
-    (sh_degree+1)^2 coefficients; gsplat's convention max(SH(dir) . c + 0.5, 0))."""
-    if sh_degree is None:
-        return colors
-    if colors.ndim != 3 or colors.shape[2] != 3 or colors.shape[1] < (sh_degree + 1) ** 2 or sh_degree > 3:
-        raise ValueError(f"sh_degree={sh_degree} needs colors [N, K >= {(sh_degree + 1) ** 2}, 3] "
-                         f"(and sh_degree <= 3), got {tuple(colors.shape)}")
-    R, t = viewmat[:3, :3].detach(), viewmat[:3, 3].detach()
-    return sh_to_rgb(means, colors[:, :(sh_degree + 1) ** 2], -R.T @ t)
-
-
-def _check_gaussians(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor) -> None:
-    n = means.shape[0] if means.ndim == 2 else -1
-    for name, t, shape in (("means", means, (n, 3)), ("quats", quats, (n, 4)), ("scales", scales, (n, 3)),
-                           ("opacities", opacities, (n,))):
-        if tuple(t.shape) != shape or n < 0:
-            raise ValueError(f"{name} has shape {tuple(t.shape)}, expected {tuple('N' if d == n else d for d in shape)}"
-                             f" (N = {n} Gaussians, from means [N, 3])")
-
-
 def _with_depth(background: torch.Tensor | None, render_mode: str) -> torch.Tensor | None:
     """A camera's background [D] for ``render_mode``: with a 0 for the depth channel (and only that
     for "D" and "ED")."""
@@ -85,21 +64,6 @@ def _with_depth(background: torch.Tensor | None, render_mode: str) -> torch.Tens
         return background
     colour = background[:0] if render_mode in ("D", "ED") else background
     return torch.cat([colour, background.new_zeros(1)])
-
-
-def _empty(n_cameras: int, width: int, height: int, channels: int, backgrounds: list) -> tuple:
-    """The render of no Gaussians: backgrounds (black if None), alpha 0, meta without Gaussians."""
-    images = torch.stack([torch.zeros(height, width, channels) if bg is None else bg.expand(height, width, channels)
-                          for bg in backgrounds])
-    tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
-    meta = {"radii": torch.zeros(n_cameras, 0, dtype=torch.int32), "means2d": torch.zeros(n_cameras, 0, 2),
-            "depths": torch.zeros(n_cameras, 0), "conics": torch.zeros(n_cameras, 0, 3),
-            "opacities": torch.zeros(n_cameras, 0),
-            "isect_offsets": torch.zeros(n_cameras, tiles_y, tiles_x, dtype=torch.int32),
-            "flatten_ids": [torch.zeros(0, dtype=torch.int32)] * n_cameras, "tile_width": tiles_x,
-            "tile_height": tiles_y, "tile_size": TILE, "width": width, "height": height, "n_cameras": n_cameras,
-            "selections": []}
-    return images, torch.zeros(n_cameras, height, width, 1), meta
 
 
 def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
@@ -144,7 +108,9 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
     backward is deterministic (bitwise identical run to run). For the K samplers the selection is
     piecewise constant in the geometry and render_alphas carries no gradient. The meta entries
     are plain tensors without gradients. Cameras get no gradient: viewmats or Ks that require
-    one raise a ValueError.
+    one raise a ValueError. Each camera renders through :func:`qr_cl.render.engine.render_view`,
+    as :func:`qr_cl.rasterize` does: the same colour stage (sh.cl) and the same splitting of
+    renders larger than the device's largest buffer.
     """
     _check_options(dict(radius_clip=radius_clip, eps2d=eps2d, packed=packed, tile_size=tile_size,
                         sparse_grad=sparse_grad, absgrad=absgrad, rasterize_mode=rasterize_mode,
@@ -156,51 +122,50 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
     n_cameras = viewmats.shape[0] if viewmats.ndim == 3 else -1
     if viewmats.ndim != 3 or viewmats.shape[1:] != (4, 4) or tuple(Ks.shape) != (n_cameras, 3, 3):
         raise ValueError(f"viewmats must be [C,4,4] and Ks [C,3,3], got {tuple(viewmats.shape)} and {tuple(Ks.shape)}")
-    _check_gaussians(means, quats, scales, opacities)
+    means, quats, scales, opacities = gaussian_tensors(means, quats, scales, opacities)
     if torch.is_grad_enabled() and (viewmats.requires_grad or Ks.requires_grad):
         raise ValueError("gradients w.r.t. viewmats and Ks (camera optimisation) are not implemented; "
                          "pass them detached")
-    quats = quats / quats.norm(dim=-1, keepdim=True)
     per_colors = _per_camera(colors, n_cameras, 2 if sh_degree is None else 3,
                              "colors" if sh_degree is None else f"colors (SH coefficients, sh_degree={sh_degree})")
     per_bg = [None] * n_cameras if backgrounds is None else _per_camera(backgrounds, n_cameras, 1, "backgrounds")
     per_bg = [_with_depth(bg, render_mode) for bg in per_bg]
-    if len(means) == 0:
-        colour_channels = 3 if sh_degree is not None else colors.shape[-1]
-        channels = {"RGB": colour_channels, "D": 1, "ED": 1}.get(render_mode, colour_channels + 1)
-        return _empty(n_cameras, width, height, channels, per_bg)
-    images, alphas, selections = [], [], []
+    images, alphas, renders = [], [], []
     for c in range(n_cameras):
         view = View(viewmats[c].detach().cpu().numpy().astype(np.float32),
                     Ks[c].detach().cpu().numpy().astype(np.float32),
                     int(width), int(height), float(near_plane), float(far_plane), sampler, k)
-        features = None if render_mode in ("D", "ED") else _colours(per_colors[c], means, viewmats[c], sh_degree)
+        features = None
+        if render_mode not in ("D", "ED"):
+            features = per_colors[c] if sh_degree is None else sh_colours(per_colors[c], means, view.viewmat, sh_degree)
         if render_mode != "RGB":
             depth = (means @ viewmats[c, 2, :3].detach() + viewmats[c, 2, 3].detach())[:, None]
             features = depth if features is None else torch.cat([features, depth], 1)
-        background = per_bg[c]
-        sel = view_selection(means, quats, scales, opacities, view)
-        image, alpha = RasterFunction.apply(means, quats, scales, opacities, features, background, sel, view)
-        image, alpha = image.reshape(height, width, -1), alpha.reshape(height, width, 1)
+        out = render_view(means, quats, scales, opacities, features, per_bg[c], view)
+        image, alpha = out.image.reshape(height, width, -1), out.alpha.reshape(height, width, 1)
         if render_mode.endswith("ED"):
             image = torch.cat([image[..., :-1], image[..., -1:] / alpha.clamp_min(1e-10)], -1)
         images.append(image)
         alphas.append(alpha)
-        selections.append(sel)
-    return torch.stack(images), torch.stack(alphas), _meta(selections, width, height)
+        renders.append(out)
+    return torch.stack(images), torch.stack(alphas), _meta(renders, means.shape[0], width, height)
 
 
-def _meta(selections: list, width: int, height: int) -> dict:
-    """gsplat's meta keys, stacked over cameras, from each camera's Selection."""
-    plans = [sel.plan.meta() for sel in selections]
-    tiles_x, tiles_y = selections[0].plan.tiles_x, selections[0].plan.tiles_y
+def _meta(renders: list, n: int, width: int, height: int) -> dict:
+    """gsplat's meta keys, stacked over cameras, from each camera's :class:`~qr_cl.render.engine.Render`
+    (a render of no Gaussians has the keys, empty)."""
+    tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
+    plans = [r.plan.meta() if r.plan is not None else None for r in renders]
 
-    def stack(key: str) -> torch.Tensor:
-        return torch.from_numpy(np.stack([p[key] for p in plans]))
-    return {"radii": stack("radii"), "means2d": stack("means2d"), "depths": stack("depths"),
-            "conics": stack("conics"), "opacities": stack("opacities"),
-            "isect_offsets": torch.from_numpy(np.stack([p["tile_ranges"][:, 0].reshape(tiles_y, tiles_x)
-                                                        for p in plans])),
-            "flatten_ids": [torch.from_numpy(p["flatten_ids"].copy()) for p in plans],
+    def stack(key: str, shape: tuple, dtype) -> torch.Tensor:
+        return torch.from_numpy(np.stack([p[key] if p is not None else np.zeros(shape, dtype) for p in plans]))
+    ranges = [p["tile_ranges"][:, 0].reshape(tiles_y, tiles_x) if p is not None
+              else np.zeros((tiles_y, tiles_x), np.int32) for p in plans]
+    return {"radii": stack("radii", (n,), np.int32), "means2d": stack("means2d", (n, 2), np.float32),
+            "depths": stack("depths", (n,), np.float32), "conics": stack("conics", (n, 3), np.float32),
+            "opacities": stack("opacities", (n,), np.float32), "isect_offsets": torch.from_numpy(np.stack(ranges)),
+            "flatten_ids": [torch.from_numpy(p["flatten_ids"].copy()) if p is not None
+                            else torch.zeros(0, dtype=torch.int32) for p in plans],
             "tile_width": tiles_x, "tile_height": tiles_y, "tile_size": TILE, "width": width,
-            "height": height, "n_cameras": len(selections), "selections": selections}
+            "height": height, "n_cameras": len(renders),
+            "selections": [r.selections[0] if len(r.selections) == 1 else r.selections for r in renders]}

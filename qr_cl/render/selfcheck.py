@@ -64,7 +64,8 @@ def _differing(got: np.ndarray, want: np.ndarray) -> float:
 def render_check() -> list[str]:
     """Render the check scene on the process's runtime; returns what differed from the twins
     (empty when the device passed)."""
-    from .rasterize import image_pixels, rasterize, render_volume_fused   # the renderers use this module
+    from .engine import image_pixels                                     # the renderers use this module
+    from .rasterize import rasterize, render_volume_fused
     geometry, features, grad, cam = _scene()
     pixels = image_pixels(WIDTH, HEIGHT)
     failures = []

@@ -1,0 +1,185 @@
+"""The rendering engine under both public calls: one camera, plan -> select -> blend, with
+gradients w.r.t. the features, the background and the Gaussians (:class:`RasterFunction`).
+
+:func:`qr_cl.rasterize` and :func:`qr_cl.rasterization` are adapters of their argument conventions
+over :func:`render_view`; both therefore check inputs the same way (:func:`gaussian_tensors`),
+colour from SH by the same kernel (:func:`sh_colours`), and split renders that exceed the
+device's largest buffer into sets of rays and groups of channels the same way.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ..runtime import BufferLimitError, Runtime, channel_layout, check_buffer, check_channels, trim_device_pool
+from ..stages.binning import RasterPlan
+from ..stages.select import Selection, entry_bytes, select
+from .autograd import RasterFunction, SHColours, View, host_rows
+from .cache import SelectionCache, selection_key
+from .plan import rasterize_plan
+from .selfcheck import checked_runtime
+
+
+def _tensor(x) -> torch.Tensor:
+    """x as a float32 CPU tensor (a tensor keeps its graph; numpy arrays are wrapped)."""
+    t = x if isinstance(x, torch.Tensor) else torch.from_numpy(np.ascontiguousarray(x, np.float32))
+    return t.to("cpu", torch.float32)
+
+
+def gaussian_tensors(means, quats, scales, opacities) -> tuple[torch.Tensor, ...]:
+    """The Gaussians as float32 CPU tensors (numpy arrays or tensors; graphs kept): means [N,3],
+    quats [N,4] w,x,y,z (normalised here: they need not be unit), scales [N,3], opacities [N].
+    ValueError naming the first bad shape."""
+    t = [_tensor(x) for x in (means, quats, scales, opacities)]
+    n = t[0].shape[0] if t[0].ndim == 2 else -1
+    for x, name, shape in zip(t, ("means", "quats", "scales", "opacities"), ((n, 3), (n, 4), (n, 3), (n,))):
+        if tuple(x.shape) != shape or n < 0:
+            raise ValueError(f"{name} has shape {tuple(x.shape)}, expected "
+                             f"{tuple('N' if d == n else d for d in shape)} (N Gaussians, from means [N, 3])")
+    t[1] = t[1] / t[1].norm(dim=-1, keepdim=True)
+    return tuple(t)
+
+
+def feature_tensor(features, n: int) -> torch.Tensor:
+    """features [N,C] (C in 1..MAX_CHANNELS) as a CPU tensor (a float tensor keeps its dtype,
+    which the render returns; the kernels blend in float32); ValueError otherwise."""
+    f = features.to("cpu") if isinstance(features, torch.Tensor) and features.is_floating_point() \
+        else _tensor(features)
+    if f.ndim != 2 or f.shape[0] != n:
+        raise ValueError(f"features has shape {tuple(f.shape)}, expected ({n}, C)")
+    check_channels(f.shape[1])
+    return f
+
+
+def background_tensor(background, channels: int) -> torch.Tensor | None:
+    """background [C] as a float32 tensor, or None; ValueError for another shape."""
+    if background is None:
+        return None
+    bg = _tensor(background)
+    if tuple(bg.shape) != (channels,):
+        raise ValueError(f"background has shape {tuple(bg.shape)}, expected ({channels},)")
+    return bg
+
+
+def sh_colours(sh, means: torch.Tensor, viewmat: np.ndarray, sh_degree: int) -> torch.Tensor:
+    """The colour stage: view-dependent RGB [N,3] from SH coefficients [N,K,3] (the first
+    (sh_degree+1)^2 of K, sh_degree <= 3) by sh.cl, differentiable w.r.t. the coefficients and the
+    means (gsplat's convention: max(SH(dir) . c + 0.5, 0), dir from the camera centre)."""
+    sh = _tensor(sh)
+    need = (sh_degree + 1) ** 2
+    if sh.ndim != 3 or sh.shape[0] != means.shape[0] or sh.shape[2] != 3 or sh.shape[1] < need or sh_degree > 3:
+        raise ValueError(f"sh_degree={sh_degree} needs SH coefficients [N, K >= {need}, 3] (sh_degree <= 3), "
+                         f"got {tuple(sh.shape)}")
+    if sh.shape[0] == 0:
+        return sh.new_zeros(0, 3)
+    campos = -viewmat[:3, :3].T @ viewmat[:3, 3]
+    return SHColours.apply(means, sh[:, :need], campos.astype(np.float32))
+
+
+def channel_groups(rt: Runtime, n: int, channels: int) -> list[slice]:
+    """Feature columns rendered together: all ``channels`` when their [n, cstride] device rows fit
+    in one buffer of the device, else groups of a multiple of 16 channels that do (channels are
+    blended independently, so the image is the same). BufferLimitError if 16 do not fit."""
+    if 4 * n * channel_layout(channels)[2] <= rt.max_buffer_bytes:
+        return [slice(0, channels)]
+    per = rt.max_buffer_bytes // (4 * n) // 16 * 16
+    if per < 16:
+        check_buffer(rt, 4 * n * 16, f"features of {n} Gaussians x 16 channels (the smallest group)")
+    return [slice(c, min(c + per, channels)) for c in range(0, channels, per)]
+
+
+def image_pixels(width: int, height: int) -> np.ndarray:
+    """Every pixel (x, y) of a width x height image, row-major: [H*W, 2] int32."""
+    ys, xs = np.mgrid[0:height, 0:width]
+    return np.stack([xs.ravel(), ys.ravel()], 1).astype(np.int32)
+
+
+def ray_sets(rt: Runtime, width: int, height: int, pixels: np.ndarray | None, k: int,
+             cstride: int) -> list[np.ndarray | None]:
+    """The rays of a render in sets whose image rows ([P, cstride] floats) and dense selection
+    rows ([P, K], and their transpose's keys: :func:`entry_bytes`) fit in one device buffer:
+    ``[pixels]`` when everything fits (None = the whole image), else consecutive runs of the pixel
+    coordinates [P_i, 2] (x, y), row-major for the whole image, so concatenating the sets' rows
+    gives the image."""
+    n_rays = width * height if pixels is None else len(pixels)
+    per_ray = max(4 * cstride, entry_bytes(rt) * k)
+    if n_rays * per_ray <= rt.max_buffer_bytes:
+        return [pixels]
+    pixels = image_pixels(width, height) if pixels is None else pixels
+    step = max(1, rt.max_buffer_bytes // per_ray)
+    return [pixels[i:i + step] for i in range(0, n_rays, step)]
+
+
+@dataclass
+class Render:
+    """What :func:`render_view` returns: image [P,C] and alpha [P,1] tensors (P = H*W, row-major,
+    or the view's pixels), the plan (None for no Gaussians) and the selections of the ray sets."""
+
+    image: torch.Tensor
+    alpha: torch.Tensor
+    plan: RasterPlan | None
+    selections: list[Selection]
+
+
+def render_view(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
+                features: torch.Tensor, background: torch.Tensor | None, view: View,
+                cache: SelectionCache | None = None) -> Render:
+    """Render features [N,C] of the Gaussians (from :func:`gaussian_tensors`, unit quats) for
+    ``view``: plan, then per set of rays (:func:`ray_sets`) select and, per group of channels
+    (:func:`channel_groups`), blend through :class:`RasterFunction`, so gradients reach features,
+    background and Gaussians. ``cache`` reuses the selections of the same geometry, camera,
+    sampler, K and rays."""
+    n, channels = means.shape[0], features.shape[1]
+    n_rays = view.width * view.height if view.pixels is None else len(view.pixels)
+    if n == 0:
+        bg = torch.zeros(channels) if background is None else background.detach()
+        return Render(bg.expand(n_rays, channels).clone(), torch.zeros(n_rays, 1), None, [])
+    rt = checked_runtime()
+    geometry = [host_rows(t) for t in (means, quats, scales, opacities)]
+    plans: list[RasterPlan] = []
+
+    def selection(rays: np.ndarray | None) -> Selection:
+        def make() -> Selection:
+            if not plans:
+                plans.append(rasterize_plan(*geometry, view.viewmat, view.K, view.width, view.height, view.near,
+                                            view.far, rt=rt))
+            return select(plans[0], view.sampler, max(view.k, 1), rays, defer=True)   # made by the first blend
+        if cache is None:
+            return make()
+        return cache.get(selection_key(*geometry, view.viewmat, view.K, view.width, view.height, view.near,
+                                       view.far, view.sampler, view.k, rays), make)
+
+    groups = channel_groups(rt, n, channels)
+    cstride = channel_layout(groups[0].stop - groups[0].start)[2]
+    parts: list[tuple[Selection, torch.Tensor, torch.Tensor]] = []
+    for rays in ray_sets(rt, view.width, view.height, view.pixels, view.k, cstride):
+        parts += _render_rays(selection, rays, view, (means, quats, scales, opacities), features, background, groups)
+    trim_device_pool(rt)
+    sels = [sel for sel, _, _ in parts]
+    image = parts[0][1] if len(parts) == 1 else torch.cat([p[1] for p in parts])
+    alpha = parts[0][2] if len(parts) == 1 else torch.cat([p[2] for p in parts])
+    return Render(image, alpha, sels[0].plan, sels)
+
+
+def _render_rays(selection, rays: np.ndarray | None, view: View, gaussians: tuple, features: torch.Tensor,
+                 background: torch.Tensor | None, groups: list[slice]) -> list[tuple]:
+    """(Selection, image [P,C], alpha [P,1]) of the rays ``rays`` (None = the whole image): one
+    entry, or several when a selection does not fit in a device buffer and the rays are halved."""
+    try:
+        sel = selection(rays)
+    except BufferLimitError:
+        if rays is not None and len(rays) < 2:
+            raise
+        rays = image_pixels(view.width, view.height) if rays is None else rays
+        half = len(rays) // 2
+        return (_render_rays(selection, rays[:half], view, gaussians, features, background, groups)
+                + _render_rays(selection, rays[half:], view, gaussians, features, background, groups))
+    try:
+        outs = [RasterFunction.apply(*gaussians, features[:, g], None if background is None else background[g],
+                                     sel, view) for g in groups]
+    finally:
+        sel.ready()                          # made even if no blend ran (it may be cached)
+    image = outs[0][0] if len(outs) == 1 else torch.cat([o[0] for o in outs], 1)
+    return [(sel, image, outs[0][1])]
