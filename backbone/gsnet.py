@@ -9,8 +9,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from ..runtime import host_empty
-from ..scene.gaussians import Gaussians
+from qr_cl.runtime import host_empty
+from qr_cl.scene import Gaussians
 from .conv import SPLIT, run_tasks
 from .sparse import SparseTensor
 from .unet import SparseUNet, UNetConfig, minkunet14

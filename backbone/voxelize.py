@@ -15,7 +15,7 @@ from typing import Literal, Sequence
 import torch
 from torch import Tensor
 
-from ..scene.gaussians import Gaussians
+from qr_cl.scene import Gaussians
 from .sparse import MAX_BATCH, KernelMapCache, pack_keys, unpack_keys
 
 SampleShape = Literal["center", "volume"]

@@ -21,7 +21,7 @@ def fox_or_procedural(bench_full, data_dir):
     """(Gaussians, width, height): the real fox at 640x480 in full mode, else a tiny procedural
     scene at 64x48 (also when ../shared/data is missing)."""
     import qr_cl
-    from qr_cl.app.procedural import procedural_scene
+    from qr_cl.app.scenes.procedural import procedural_scene
     fox = data_dir / "wakufactory-fox" / "fox.ply"
     if bench_full and fox.is_file():
         with warnings.catch_warnings():

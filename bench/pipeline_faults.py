@@ -22,18 +22,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import resource
 import statistics
 import subprocess
 import sys
-import time
+
+from benchutil import timing
 
 WIDTH, HEIGHT, N_GAUSSIANS, CHANNELS, K = 640, 480, 50_000, 512, 40
 VIEWS, PIXELS = 4, 2048
-
-
-def minflt() -> int:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt
 
 
 def scene():
@@ -41,23 +37,21 @@ def scene():
 
     import qr_cl
     try:
-        from qr_cl.app.procedural import procedural_scene
-    except ImportError:                      # releases before the layered package
-        from qr_cl.procedural import procedural_scene
+        from qr_cl.app.scenes.procedural import procedural_scene
+    except ImportError:
+        try:
+            from qr_cl.app.procedural import procedural_scene
+        except ImportError:                      # releases before the layered package
+            from qr_cl.procedural import procedural_scene
     g = procedural_scene(N_GAUSSIANS)
     cams = qr_cl.orbit_cameras(g.means, 8, WIDTH, HEIGHT)
     geo = tuple(np.ascontiguousarray(a, np.float32) for a in (g.means, g.quats, g.scales, g.opacities))
     return qr_cl, geo, cams
 
 
-def measure(call, warm: int) -> dict:
+def cold_and_warm(call, warm: int) -> dict:
     """Cold call, then ``warm`` calls: wall seconds and minor page faults of each."""
-    times, faults = [], []
-    for _ in range(1 + warm):
-        f0, t0 = minflt(), time.perf_counter()
-        call()
-        times.append(time.perf_counter() - t0)
-        faults.append(minflt() - f0)
+    times, faults = timing.timed_calls(call, 1 + warm)
     w_t, w_f = times[1:] or times, faults[1:] or faults
     return {"cold_s": times[0], "cold_faults": faults[0], "warm_min_s": min(w_t),
             "warm_median_s": statistics.median(w_t), "warm_faults_per_call": statistics.mean(w_f),
@@ -80,7 +74,7 @@ def run(what: str, warm: int) -> dict:
             # the previous result stays alive during the call, as in `for ...: img = render()`
             state["img"] = qr_cl.rasterize(*geo, feats, cam.viewmat, cam.K, WIDTH, HEIGHT,
                                            sampler="quantile", k=K)[0]
-        out["render"] = measure(render, warm)
+        out["render"] = cold_and_warm(render, warm)
         assert tuple(state["img"].shape) == (HEIGHT, WIDTH, CHANNELS)
     if what in ("train", "both"):
         leaf = feats.clone().requires_grad_(True)
@@ -97,7 +91,7 @@ def run(what: str, warm: int) -> dict:
                 loss = loss + (img * t).sum()
             loss.backward()
             assert leaf.grad is not None and leaf.grad.shape == leaf.shape
-        out["train"] = measure(step, warm)
+        out["train"] = cold_and_warm(step, warm)
     return out
 
 

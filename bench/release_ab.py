@@ -1,7 +1,7 @@
 """This checkout against another install of qr-cl (e.g. an earlier release in its own venv), back to back.
 
 The renderer's headline figures, on the real fox (50k Gaussians; with ``--data``) and the
-300k-Gaussian dense room (``qr_cl.app.procedural.dense_room``), 640x480, each public call timed
+300k-Gaussian dense room (``qr_cl.app.scenes.procedural.dense_room``), 640x480, each public call timed
 from its arguments to the image (plan included):
 
 * ``walk``: the fused V-Render of 3 channels (the tile walk, almost no blending);
@@ -25,15 +25,15 @@ from __future__ import annotations
 
 import argparse
 import json
-import resource
 import subprocess
 import sys
 import tempfile
-import time
 import warnings
 from pathlib import Path
 
 import numpy as np
+
+from benchutil import timing
 
 WIDTH, HEIGHT, CHANNELS, DENSE_N = 640, 480, 512, 300_000
 VIEWS, RAYS = 4, 2048
@@ -43,7 +43,7 @@ PATHS = ("walk", "fused", "q40", "q10", "train")
 def make_scenes(data: Path | None, out: Path) -> list[str]:
     """Write the scenes' Gaussians and cameras to ``out`` (npz, keys ``<scene>/<array>``); their names."""
     import qr_cl
-    from qr_cl.app.procedural import dense_room
+    from qr_cl.app.scenes.procedural import dense_room
     scenes = {}
     fox = None if data is None else data / "wakufactory-fox" / "fox.ply"
     if fox is not None and fox.is_file():
@@ -62,7 +62,7 @@ def make_scenes(data: Path | None, out: Path) -> list[str]:
     return list(scenes)
 
 
-def measure(scenes_file: Path, calls: int) -> dict:
+def measure_install(scenes_file: Path, calls: int) -> dict:
     """{scene: {path: {"min_s", "faults"}}} for the qr_cl this interpreter imports."""
     import torch
     import qr_cl
@@ -96,13 +96,10 @@ def measure(scenes_file: Path, calls: int) -> dict:
         for path in PATHS:
             call, kept = calls_of[path], []
             kept.append(call())                  # warm-up; results stay alive as in a render loop
-            times, faults = [], []
-            for _ in range(calls):
-                f0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
-                t0 = time.perf_counter()
+
+            def keep(call=call, kept=kept) -> None:
                 kept[0] = call()
-                times.append(time.perf_counter() - t0)
-                faults.append(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - f0)
+            times, faults = timing.timed_calls(keep, calls)
             results[name][path] = {"min_s": min(times), "faults": min(faults)}
     return results
 
@@ -141,7 +138,7 @@ def main() -> None:
     ap.add_argument("--worker", type=Path, help=argparse.SUPPRESS)   # scenes file: measure, print JSON
     args = ap.parse_args()
     if args.worker:
-        print(json.dumps(measure(args.worker, args.calls)))
+        print(json.dumps(measure_install(args.worker, args.calls)))
         return
     if not args.base:
         ap.error("--base PYTHON is required")

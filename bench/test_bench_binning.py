@@ -1,11 +1,9 @@
 """Binning building blocks: pyopencl's scan and RadixSort vs numpy on the host (CPU device).
 
-This measurement is why ``qr_cl.stages.binning.sort_pairs`` sorts on the host when the device is
-the CPU: on the fox scene at 640x480 (105k keys) pyopencl's RadixSort took ~17 ms and numpy's
-stable argsort, copies included, ~4.6 ms; torch's stable sort (a radix sort of int64 keys, one
-thread) is faster again (3.7M keys of a dense room: 97 ms vs numpy's 374 ms; 380k keys: 3.7 vs
-29 ms), so ``sort_pairs`` uses it (``test_sort_pairs_host``). pyopencl's scan (~0.27 ms, numpy
-0.21 ms) is kept: it runs on every device.
+This measurement is why ``qr_cl.stages.sort_pairs`` sorts on the host when the device is
+the CPU: there pyopencl's RadixSort is slower than numpy's stable argsort, copies included, and
+torch's stable sort (a radix sort of int64 keys, one thread) is faster again, so ``sort_pairs``
+uses it (``test_sort_pairs_host``). pyopencl's scan is kept: it runs on every device.
 
     pytest bench/test_bench_binning.py --benchmark-only
 """
@@ -16,8 +14,7 @@ import pytest
 from benchutil import run
 from qr_cl.runtime import exclusive_scan, runtime, to_device
 from qr_cl.scene import orbit_cameras
-from qr_cl.stages import project, tile_grid
-from qr_cl.stages.binning import radix_sorter
+from qr_cl.stages import project, radix_sorter, tile_grid
 
 
 @pytest.fixture(scope="module")
@@ -78,7 +75,7 @@ def test_sort_numpy_host(benchmark, keys, bench_full):
 
 def test_sort_pairs_host(benchmark, keys, bench_full):
     """qr-cl's CPU path (torch's stable sort into pooled host arrays), equal to numpy's stable order."""
-    from qr_cl.stages.binning import sort_pairs
+    from qr_cl.stages import sort_pairs
     rt, (_, k, v, bits) = runtime(), keys
     sk, sv = run(benchmark, lambda: sort_pairs(rt, k, v, bits), bench_full)
     order = np.argsort(k.get(), kind="stable")

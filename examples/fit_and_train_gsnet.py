@@ -30,10 +30,11 @@ import torch
 from tqdm import tqdm
 
 import qr_cl
-from qr_cl.app.data import load_scene_folder
-from qr_cl.app.evaluate import network_features
 from qr_cl.app.images import save_image_grid
-from qr_cl.app.train import TrainConfig, train
+from qr_cl.app.scenes.folders import load_scene_folder
+from qr_cl.app.training.config import TrainConfig
+from qr_cl.app.training.network import network_features
+from qr_cl.app.training.trainer import train
 
 DEFAULT_PLY = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "wakufactory-fox" / "fox.ply"
 FEATURE_DIM = 512

@@ -8,13 +8,13 @@ all-reference pipeline, for RGB and 512-D features; and the time of one OpenCL r
 numpy reference's time, measured in this run.
 """
 import argparse
-import time
 import warnings
 from pathlib import Path
 
 import numpy as np
 
 import qr_cl
+from qr_cl.app.timing import timed
 from qr_cl.scene import load_layout_instance
 from qr_cl.stages import sh_ref, vrender_ref
 
@@ -27,12 +27,6 @@ def scenes(data: Path):
         donut = qr_cl.load_ply(data / "v3dg-donut" / "donut_fused.ply").transformed(*load_layout_instance(layout))
     yield "fox (orbit 640x480)", fox, qr_cl.orbit_cameras(fox.means, 8, 640, 480)[1]
     yield "donut (own camera, 640x360)", donut, qr_cl.load_cameras(layout)[0].resized(640, 360)
-
-
-def timed(fn):
-    start = time.perf_counter()
-    out = fn()
-    return out, time.perf_counter() - start
 
 
 def main() -> None:

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import qr_cl
-from qr_cl.app.model import torch_threads
+from qr_cl.app.process import torch_threads
 from qr_cl.scene import load_layout_instance
 from synthetic_helpers import tiny_scene
 

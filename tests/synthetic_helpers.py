@@ -3,7 +3,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from qr_cl.app.synthetic import SyntheticConfig, synthetic_scene
+from qr_cl.app.scenes.room_config import SyntheticConfig
+from qr_cl.app.scenes.synthetic import room_folder
 
 
 def tiny_config(seed: int = 0, **overrides) -> SyntheticConfig:
@@ -16,4 +17,4 @@ def tiny_config(seed: int = 0, **overrides) -> SyntheticConfig:
 
 def tiny_scene(cache: Path, seed: int = 0, **overrides) -> Path:
     """The folder of :func:`tiny_config` under ``cache`` (generated on first use)."""
-    return synthetic_scene(tiny_config(seed, **overrides), cache)
+    return room_folder(tiny_config(seed, **overrides), cache)

@@ -3,7 +3,7 @@ import json
 
 import pytest
 
-from qr_cl.app import benchmark
+from qr_cl.app.bench.report import REPORT_VERSION
 from qr_cl.app.cli import main
 from qr_cl.runtime import SAMPLERS
 
@@ -17,7 +17,7 @@ def report_dir(tmp_path_factory):
 
 def test_report_has_every_stage_and_baseline(report_dir):
     report = json.loads((report_dir / "report.json").read_text())
-    assert report["version"] == benchmark.REPORT_VERSION and report["meta"]["mode"] == "smoke"
+    assert report["version"] == REPORT_VERSION and report["meta"]["mode"] == "smoke"
     stages = {(r["stage"], r["sampler"]) for r in report["results"]}
     for sampler in ("volume", "quantile", "topk"):
         for stage in ("selection", "blend-forward", "blend-backward", "end-to-end"):
@@ -60,7 +60,7 @@ def test_compare_two_reports(report_dir, capsys):
 
 
 def test_implementations_side_by_side_lists_shared_rows_and_refusals():
-    from qr_cl.app.bench_implementations import side_by_side
+    from qr_cl.app.bench.implementations import side_by_side
     meta = dict(device="D", platform="P", driver="1", compute_units=2, mode="smoke", date="today")
     row = dict(scene="s", width=8, height=6, stage="selection", sampler="quantile", k=10, channels=0)
     a = {"meta": meta, "results": [{**row, "min_s": 0.002}, {**row, "stage": "fused", "min_s": 0.1}]}

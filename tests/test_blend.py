@@ -8,7 +8,7 @@ import pytest
 from qr_cl.render import rasterize_plan
 from qr_cl.runtime import channel_layout, memory, padded_rows, shared_array
 from qr_cl.stages import blend as blend_stage
-from qr_cl.stages import blend_backward, blend_forward, blend_ref, render_fused, select
+from qr_cl.stages import blend_backward, blend_forward, blend_ref, render_fused, select, transpose
 
 RTOL = 1e-5
 
@@ -127,7 +127,7 @@ def test_owner_bounds_split_the_entries_evenly(plan, monkeypatch):
 
 def test_transpose_groups_entries_by_gaussian(plan):
     sel = select(plan, "quantile", 6)
-    cursor, t_ray, t_w, t_entry, chunks = sel.transpose()
+    cursor, t_ray, t_w, t_entry, chunks = transpose(sel)
     ends = cursor.get()[chunks - 1::chunks]
     h = sel.host()
     counts = np.bincount(h["ids"][h["ids"] >= 0], minlength=sel.n_gaussians)

@@ -3,7 +3,7 @@ import numpy as np
 from matplotlib.image import imread
 
 from qr_cl.app.cli import main
-from qr_cl.app.procedural import procedural_scene
+from qr_cl.app.scenes.procedural import procedural_scene
 from qr_cl.scene import save_ply
 
 

@@ -7,14 +7,14 @@ import shutil
 import numpy as np
 import pytest
 
-from qr_cl.app.data import SceneDataError, load_scene_folder, read_labelled_points
-from qr_cl.app.synthetic import synthetic_scene, write_labelled_points
+from qr_cl.app.scenes.folders import SceneDataError, load_scene_folder, read_labelled_points
+from qr_cl.app.scenes.synthetic import room_folder, write_labelled_points
 from synthetic_helpers import tiny_config
 
 
 @pytest.fixture(scope="module")
 def source(tmp_path_factory):
-    return synthetic_scene(tiny_config(5), tmp_path_factory.mktemp("cache"))
+    return room_folder(tiny_config(5), tmp_path_factory.mktemp("cache"))
 
 
 @pytest.fixture

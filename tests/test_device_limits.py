@@ -35,7 +35,7 @@ def render(scene, channels: int, sampler: str, k: int = 6, pixels=None):
 @pytest.fixture(params=["cpu", "gpu"])
 def shape(request, monkeypatch):
     """Both launch shapes (GPU shapes sort 8-byte transpose keys per selection entry)."""
-    monkeypatch.setenv("QR_CL_LAUNCH", request.param)
+    monkeypatch.setattr(qr_cl.runtime.runtime(), "gpu_shaped", request.param == "gpu")
     return request.param
 
 

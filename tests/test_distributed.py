@@ -9,8 +9,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from qr_cl.app.model import torch_threads
-from qr_cl.app.train import TrainConfig, Trainer, train
+from qr_cl.app.process import torch_threads
+from qr_cl.app.training.config import TrainConfig
+from qr_cl.app.training.trainer import Trainer, train
 from synthetic_helpers import tiny_scene
 
 REPO = Path(__file__).resolve().parents[1]

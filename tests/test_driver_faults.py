@@ -35,8 +35,8 @@ def child() -> None:
     from qr_cl.render import rasterize_plan
     from qr_cl.runtime import channel_layout, to_device
     from qr_cl.scene import look_at
-    from qr_cl.stages import blend_backward, blend_forward, select
-    from qr_cl.stages.blend import blend_backward_alpha, scatters, splat_backward
+    from qr_cl.stages import blend as blend_module
+    from qr_cl.stages import blend_backward, blend_backward_alpha, blend_forward, scatters, select, splat_backward
 
     cam = look_at([0, 0, 0], [0, 0, 1], [0, -1, 0], 30.0, 30.0, W, H)
     plan = rasterize_plan(*scene(), cam.viewmat, cam.K, W, H)
@@ -56,7 +56,6 @@ def child() -> None:
         for scatter in (True, False):                   # both backward kernels (the gather transposes)
             sel.transposed = sel.order = None
             sel.owners.clear()
-            import qr_cl.stages.blend as blend_module
             blend_module.scatters = (lambda s, v=scatter: v)
             blend_backward(sel, dimage, C).get()
         blend_module.scatters = scatters

@@ -7,13 +7,14 @@ import numpy as np
 import pytest
 
 from qr_cl.app.cli import main
-from qr_cl.app.data import load_scene_folder
-from qr_cl.app.evaluate import evaluate_features, ground_truth, pseudo_labels, reached_gaussians
-from qr_cl.app.loss import view_plan
-from qr_cl.app.metrics import confusion_matrix, miou_macc
-from qr_cl.app.synthetic import class_prototypes
+from qr_cl.app.evaluation.labels import ground_truth, pseudo_labels, reached_gaussians
+from qr_cl.app.evaluation.metrics import confusion_matrix, miou_macc
+from qr_cl.app.evaluation.scoring import evaluate_features
+from qr_cl.app.scenes.folders import load_scene_folder
+from qr_cl.app.scenes.synthetic import class_prototypes
+from qr_cl.app.training.rays import view_plan
 from qr_cl.scene import Gaussians
-from qr_cl.stages.select import select
+from qr_cl.stages import select
 from synthetic_helpers import tiny_config, tiny_scene
 
 

@@ -1,5 +1,5 @@
 """GPU-shaped launches (work-groups over padded sizes, device sorts, many-work-item transposes),
-forced on PoCL with QR_CL_LAUNCH=gpu, give the same bytes as the CPU-shaped ones."""
+forced on PoCL (``Runtime.gpu_shaped``), give the same bytes as the CPU-shaped ones."""
 import numpy as np
 import pyopencl.array as cla
 import pytest
@@ -8,7 +8,8 @@ import torch
 import qr_cl
 from qr_cl.render import rasterize_plan
 from qr_cl.runtime import runtime
-from qr_cl.stages import blend_backward, select
+from qr_cl.runtime.device import gpu_shapes
+from qr_cl.stages import blend_backward, select, transpose
 
 
 @pytest.fixture(scope="module")
@@ -22,16 +23,26 @@ def segment_ends(cursor: np.ndarray, chunks: int) -> np.ndarray:
     return cursor.reshape(-1, chunks)[:, -1]
 
 
+def test_launch_shapes_are_read_once_from_the_environment(monkeypatch):
+    device, shaped = runtime().device, runtime().gpu_shaped
+    for value, gpu in (("", False), ("gpu", True), (" CPU ", False)):
+        monkeypatch.setenv("QR_CL_LAUNCH", value)
+        assert gpu_shapes(device) is gpu                     # PoCL: a CPU device
+    monkeypatch.setenv("QR_CL_LAUNCH", "tpu")
+    with pytest.raises(ValueError, match="QR_CL_LAUNCH"):
+        gpu_shapes(device)
+    assert runtime().gpu_shaped is shaped                    # the Runtime read it when it was created
+
+
 @pytest.mark.parametrize("sampler,k", [("volume", 1), ("quantile", 7), ("topk", 5)])
 @pytest.mark.parametrize("subset", [False, True])
 def test_sorted_transpose_equals_counting_sort(plan, monkeypatch, sampler, k, subset):
     pixels = np.random.default_rng(1).integers(0, (plan.width, plan.height), (300, 2)) if subset else None
     shapes = {}
     for launch in ("cpu", "gpu"):
-        monkeypatch.setenv("QR_CL_LAUNCH", launch)
-        assert runtime().gpu_shaped == (launch == "gpu")
+        monkeypatch.setattr(runtime(), "gpu_shaped", launch == "gpu")
         sel = select(plan, sampler, k, pixels)
-        cursor, t_ray, t_w, t_entry, chunks = sel.transpose()
+        cursor, t_ray, t_w, t_entry, chunks = transpose(sel)
         dimage = np.random.default_rng(2).normal(size=(sel.n_rays, 16)).astype(np.float32)
         grad = blend_backward(sel, cla.to_device(runtime().queue, dimage), 16).get()
         shapes[launch] = segment_ends(cursor.get(), chunks), t_ray.get(), t_w.get(), t_entry.get(), chunks, grad
@@ -50,7 +61,7 @@ def test_gpu_shaped_render_equals_cpu_shaped(random_scene, monkeypatch, sampler)
     pixels = np.random.default_rng(3).integers(0, (w, h), (77, 2))
     out = {}
     for launch in ("cpu", "gpu"):
-        monkeypatch.setenv("QR_CL_LAUNCH", launch)
+        monkeypatch.setattr(runtime(), "gpu_shaped", launch == "gpu")
         feats = torch.from_numpy(np.random.default_rng(4).normal(size=(len(m), 24)).astype(np.float32))
         feats.requires_grad_(True)
         img, alpha, _ = qr_cl.rasterize(m, q, s, o, feats, v, K, w, h, sampler=sampler, k=6)
@@ -71,7 +82,7 @@ def test_pyopencl_scan_and_sort_are_checked_on_the_device(monkeypatch):
     from qr_cl.stages import binning
     rt = runtime()
     assert memory.device_scan_works(rt.context) and binning.device_sort_works(rt.context)   # PoCL
-    monkeypatch.setenv("QR_CL_LAUNCH", "gpu")
+    monkeypatch.setattr(rt, "gpu_shaped", True)
     monkeypatch.setattr(memory, "device_scan_works", lambda context: False)
     monkeypatch.setattr(binning, "device_sort_works", lambda context: False)
     values = np.random.default_rng(0).integers(0, 9, 1000).astype(np.int32)

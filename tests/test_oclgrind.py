@@ -88,7 +88,7 @@ def exercise() -> None:
     import torch
 
     import qr_cl
-    from qr_cl.app import roofline
+    from qr_cl.app.bench import roofline
     from qr_cl.runtime import runtime
 
     torch.set_num_threads(1)
@@ -141,19 +141,21 @@ def exercise() -> None:
     qr_cl.rasterize(*geo, wide, cam.viewmat, cam.K, W, H, sampler="quantile", k=4)
     print("render_volume_fused and rasterize, 544 channels: ok", flush=True)
 
-    for degree in (1, 3):
-        qr_cl.rasterize(*geo, sh, cam.viewmat, cam.K, W, H, sh_degree=degree)
+    for degree in (1, 3):                      # the colour stage and its backward (sh_backward)
+        coeffs = torch.from_numpy(sh).requires_grad_(True)
+        qr_cl.rasterize(*geo, coeffs, cam.viewmat, cam.K, W, H, sh_degree=degree)[0].sum().backward()
+        assert bool(torch.isfinite(coeffs.grad).all())
         qr_cl.render_volume_fused(*geo, sh, cam.viewmat, cam.K, W, H, sh_degree=degree)
-        print(f"RGB from SH degree {degree}: ok", flush=True)
+        print(f"RGB from SH degree {degree}, forward and backward: ok", flush=True)
 
-    os.environ["QR_CL_LAUNCH"] = "cpu"         # CPU shapes: each K sampler with the blend fused in
+    gpu_shaped, rt.gpu_shaped = rt.gpu_shaped, False   # CPU shapes: each K sampler with the blend fused in
     for sampler in ("quantile", "topk", "stratified"):
         for px, background in ((None, None), (pixels, bg)):
             qr_cl.rasterize(*geo, feats, cam.viewmat, cam.K, W, H, sampler=sampler, k=4,
                             background=background, pixels=px)
             print(f"rasterize {sampler} CPU shapes (selection with the blend) pixels={px is not None}: ok",
                   flush=True)
-    del os.environ["QR_CL_LAUNCH"]
+    rt.gpu_shaped = gpu_shaped
 
     roofline.FMA_ITERS = 16                    # fma_peak's loop length (passed as -DITERS)
     roofline.fma_rate(rt, work_items=16, rounds=1)
@@ -171,7 +173,7 @@ def exercise_pyopencl() -> None:
     from pyopencl.scan import InclusiveScanKernel
 
     from qr_cl.runtime import exclusive_scan, runtime
-    from qr_cl.stages.binning import radix_sorter
+    from qr_cl.stages import radix_sorter
 
     rt = runtime()
     q = rt.queue

@@ -7,7 +7,8 @@ gradient), a pixel subset, the SH colour kernel, render_volume_fused (image, alp
 rasterization (image and gradients w.r.t. means, quats, scales, opacities and colours). Each
 implementation runs twice with one fresh kernel cache: the first run builds from source, the
 second loads pyopencl's cached binaries (which carry no argument info on Intel's runtime). Every
-output must equal PoCL's within 1e-4 of its largest value, or the implementation must be refused
+output must equal PoCL's within 1e-4 of its largest value (the K samplers' outputs in all but 0.1 %
+of their rows: rays at a boundary by float rounding), or the implementation must be refused
 with a message that names what failed (rusticl 22.3: the loop limit). With the self-check off,
 a refused implementation must still never crash. The kernel-against-twin tests run on Intel's
 runtime too. Skipped for implementations not installed.
@@ -39,7 +40,7 @@ def load(name: str, data: Path):
     """(Gaussians, Camera at W x H) of a scene: "random" (procedural, always there), "fox",
     "donut" (../shared/data) or "dense" (the procedural 300k-Gaussian room)."""
     import qr_cl
-    from qr_cl.app.procedural import dense_room, procedural_scene
+    from qr_cl.app.scenes.procedural import dense_room, procedural_scene
     from qr_cl.scene import load_layout_instance
     if name == "random":
         g = procedural_scene(3000, seed=2)
@@ -122,15 +123,27 @@ def scenes_here(shared: bool) -> list[str]:
     return SCENES if shared else ["random"]
 
 
+#: Outputs of samplers that select K Gaussians per ray at transmittance boundaries.
+K_SAMPLED = ("quantile/", "topk/", "stratified/", "pixels/", "rasterization-quantile/")
+#: The share of rows (pixels, or Gaussians of a gradient) of a K sampler's output that may differ:
+#: a ray whose transmittance meets a boundary at float rounding selects differently under another
+#: compiler (the dense room's stratified sampler on Intel's runtime: 2 of 19,200 rays).
+FLIPPED_ROWS = 1e-3
+
+
 def compare(got: dict, want: dict) -> list[str]:
-    """The outputs of ``got`` off ``want``'s by more than RTOL of want's largest value."""
+    """The outputs of ``got`` off ``want``'s by more than RTOL of want's largest value (for the K
+    samplers: in more than FLIPPED_ROWS of their rows)."""
     bad = []
     assert sorted(got) == sorted(want)
     for key in sorted(want):
         scale = max(float(np.abs(want[key]).max(initial=0)), 1e-30)
-        err = float(np.abs(got[key] - want[key]).max(initial=0)) / scale
-        if not err <= RTOL:
-            bad.append(f"{key}: {err:.2e}")
+        off = np.abs(got[key] - want[key]) > RTOL * scale
+        rows = off.reshape(-1, off.shape[-1]).any(1) if off.ndim > 1 else off
+        allowed = int(FLIPPED_ROWS * len(rows)) if any(s in key for s in K_SAMPLED) else 0
+        if rows.sum() > allowed:
+            err = float(np.abs(got[key] - want[key]).max()) / scale
+            bad.append(f"{key}: {err:.2e} in {int(rows.sum())} of {len(rows)} rows")
     return bad
 
 

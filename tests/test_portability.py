@@ -11,8 +11,7 @@ import pytest
 from qr_cl.render import rasterize_plan
 from qr_cl.runtime import runtime, to_device
 from qr_cl.scene import look_at
-from qr_cl.stages import binning_ref, project_ref
-from qr_cl.stages.project import project
+from qr_cl.stages import binning_ref, project, project_ref
 
 W, H = 96, 72
 RADIUS_MAX = project_ref.RADIUS_MAX

@@ -8,7 +8,7 @@ from qr_cl.render import rasterize_plan
 from qr_cl.runtime import runtime, to_device
 from qr_cl.scene import Gaussians, look_at, orbit_cameras
 from qr_cl.stages import binning_ref, project_ref, sh_colors, sh_ref, vrender_ref
-from qr_cl.stages.binning import host_sort
+from qr_cl.stages import host_sort
 from qr_cl.stages.sh import sh_backward
 
 W, H = 96, 72

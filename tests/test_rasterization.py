@@ -247,7 +247,7 @@ def test_alpha_gradients_follow_the_derivation(random_scene, sampler, k):
     from qr_cl.render import rasterize_plan
     from qr_cl.runtime import channel_layout, device_rows, runtime
     from qr_cl.stages import select
-    from qr_cl.stages.blend import blend_backward_alpha
+    from qr_cl.stages import blend_backward_alpha
     m, q, s, o, v, K, w, h = random_scene
     rng = np.random.default_rng(8)
     features = rng.standard_normal((len(m), 6)).astype(np.float32)

@@ -10,11 +10,16 @@ import numpy as np
 import pytest
 
 from qr_cl.app.cli import DELEGATED, build_parser, main
-from qr_cl.app.data import load_scene_folder
-from qr_cl.app.reproduce import (PLANS, Renderer, entries_per_ray, noisy_scene, paper_claims, perturb_opacities,
-                                 profile_gaps,
-                                 psnr, renderers, report_markdown, weight_concentration, write_report)
-from qr_cl.app.synthetic import SyntheticConfig, synthetic_scene
+from qr_cl.app.experiments.claims import paper_claims
+from qr_cl.app.experiments.plan import PLANS, TrainingRun, plan_runs
+from qr_cl.app.experiments.report import report_markdown, write_report
+from qr_cl.app.experiments.rgb import psnr
+from qr_cl.app.experiments.rooms import noisy_scene, perturb_opacities
+from qr_cl.app.experiments.scene_statistics import entries_per_ray, weight_concentration
+from qr_cl.app.experiments.transmittance import profile_gaps
+from qr_cl.app.scenes.folders import load_scene_folder
+from qr_cl.app.scenes.room_config import SyntheticConfig
+from qr_cl.app.scenes.synthetic import room_folder
 from synthetic_helpers import tiny_config
 
 SPLAT_ROOM = dict(style="3dgs", n_gaussians=5000, layers=2.0, n_objects=3, n_wall_objects=1, n_views=3, width=80,
@@ -23,7 +28,7 @@ SPLAT_ROOM = dict(style="3dgs", n_gaussians=5000, layers=2.0, n_objects=3, n_wal
 
 @pytest.fixture(scope="module")
 def splat_room(tmp_path_factory):
-    return synthetic_scene(SyntheticConfig(seed=5, **SPLAT_ROOM), tmp_path_factory.mktemp("splat"))
+    return room_folder(SyntheticConfig(seed=5, **SPLAT_ROOM), tmp_path_factory.mktemp("splat"))
 
 
 def _mean_entries(path) -> float:
@@ -34,7 +39,7 @@ def _mean_entries(path) -> float:
 
 def test_splat_rays_cross_many_gaussians_unlike_flat_rooms(splat_room, tmp_path):
     flat_room = {k: v for k, v in SPLAT_ROOM.items() if k not in ("style", "layers")}
-    flat = synthetic_scene(SyntheticConfig(seed=5, **flat_room), tmp_path)
+    flat = room_folder(SyntheticConfig(seed=5, **flat_room), tmp_path)
     splat, opaque = _mean_entries(splat_room), _mean_entries(flat)
     assert splat >= 50
     assert splat > 1.5 * opaque
@@ -67,14 +72,14 @@ def test_splat_masks_come_from_object_ids(splat_room):
 
 
 def test_splat_room_is_seeded_and_cached(splat_room, tmp_path):
-    again = synthetic_scene(SyntheticConfig(seed=5, **SPLAT_ROOM), tmp_path)
+    again = room_folder(SyntheticConfig(seed=5, **SPLAT_ROOM), tmp_path)
     assert again.name.startswith("splat-room-5-")
     for rel in ("point_cloud.ply", "cameras.json", "labels/gaussian_labels.npy", "language_features/frame_001_s.npy"):
         assert filecmp.cmp(splat_room / rel, again / rel, shallow=False), rel
     mtime = (again / "point_cloud.ply").stat().st_mtime_ns
-    assert synthetic_scene(SyntheticConfig(seed=5, **SPLAT_ROOM), tmp_path) == again
+    assert room_folder(SyntheticConfig(seed=5, **SPLAT_ROOM), tmp_path) == again
     assert (again / "point_cloud.ply").stat().st_mtime_ns == mtime
-    other = synthetic_scene(SyntheticConfig(seed=6, **SPLAT_ROOM), tmp_path)
+    other = room_folder(SyntheticConfig(seed=6, **SPLAT_ROOM), tmp_path)
     assert not filecmp.cmp(splat_room / "point_cloud.ply", other / "point_cloud.ply", shallow=False)
 
 
@@ -141,22 +146,22 @@ def test_psnr():
 
 
 def test_renderers_of_the_plans():
-    full = renderers(PLANS["full"])
+    full = plan_runs(PLANS["full"])
     labels = [r.label for r in full]
     assert len(set(labels)) == len(labels)
-    assert Renderer("volume") in full
+    assert TrainingRun("volume") in full
     for k in (5, 10, 20, 40, 50):
-        assert Renderer("topk", k) in full and Renderer("quantile", k) in full
-    assert Renderer("stratified", 40) in full and Renderer("quantile", 40, seed=1) in full
+        assert TrainingRun("topk", k) in full and TrainingRun("quantile", k) in full
+    assert TrainingRun("stratified", 40) in full and TrainingRun("quantile", 40, seed=1) in full
     assert {r.noise for r in full} == {0.0, 0.25, 0.5, 1.0, 2.0, 4.0}
     assert all(r.sampler == "quantile" and r.k == 40 for r in full if r.noise)
-    assert len(renderers(PLANS["quick"])) < len(full)
+    assert len(plan_runs(PLANS["quick"])) < len(full)
 
 
 def _results(q5: float = 30.0, t5: float = 25.0, noise_half: float = 39.5, strat_ms: float = 20.0,
              baseline: float = 45.0) -> dict:
     def run(sampler, k, miou, noise=0.0, seed=0):
-        return {"sampler": sampler, "k": k, "noise": noise, "seed": seed, "label": Renderer(sampler, k, noise, seed).label,
+        return {"sampler": sampler, "k": k, "noise": noise, "seed": seed, "label": TrainingRun(sampler, k, noise, seed).label,
                 "steps": 10,
                 "train_s": 1.0, "final_loss": 0.5, "miou19": miou, "macc19": miou + 5, "miou15": miou + 1,
                 "macc15": 0.0, "miou10": miou + 2, "macc10": 0.0, "miou19_reached": miou + 3,
@@ -236,7 +241,7 @@ def test_smoke_run_writes_the_report(tmp_path, data_dir, capsys):
     assert main(["reproduce", "--smoke", "--out", str(out), "--cache", str(tmp_path / "cache"),
                  "--data", str(data_dir)]) == 0
     results = json.loads((out / "results.json").read_text())
-    assert {r["label"] for r in results["runs"]} == {r.label for r in renderers(PLANS["smoke"])}
+    assert {r["label"] for r in results["runs"]} == {r.label for r in plan_runs(PLANS["smoke"])}
     assert {t["sampler"] for t in results["render_ms"]} == {"volume", "topk", "quantile", "stratified", "volume_fused"}
     assert 0 < results["reached"]["gaussians"] <= results["reached"]["labelled"]
     assert {"miou19", "miou19_reached"} <= set(results["baseline"]) and "miou19_reached" in results["runs"][0]

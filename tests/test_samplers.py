@@ -7,10 +7,11 @@ import numpy as np
 import pytest
 
 import qr_cl
+from qr_cl.app.experiments.transmittance import transmittance_profile
 from qr_cl.app.images import plot_transmittance_profiles
 from qr_cl.render import rasterize_plan
 from qr_cl.runtime import TILE
-from qr_cl.stages import Selection, blend_ref, select, select_ref, transmittance_profile
+from qr_cl.stages import Selection, blend_ref, select, select_ref
 
 RTOL = 1e-5
 

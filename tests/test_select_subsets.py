@@ -1,4 +1,4 @@
-"""Subsets and compact tables of selections (select.py's training helpers) against numpy twins:
+"""Subsets and compact tables of selections (training's selections) against numpy twins:
 gather_rays (rays of a whole-image selection), remap_ids / compact_selections (ids re-indexed into
 the Gaussians used) and concat_selections (several views' rays as one selection)."""
 from __future__ import annotations
@@ -7,9 +7,10 @@ import numpy as np
 import pytest
 import torch
 
+from qr_cl.app.training.selections import (CompactSelection, compact_selections, concat_selections, gather_rays,
+                                           ray_entries, remap_ids)
 from qr_cl.render import blend, rasterize_plan
-from qr_cl.stages.select import (CompactSelection, compact_selections, concat_selections, gather_rays, ray_entries,
-                                 remap_ids, select)
+from qr_cl.stages import select
 
 SAMPLERS = [("quantile", 6), ("topk", 3), ("volume", 0)]
 

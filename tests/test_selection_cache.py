@@ -4,7 +4,8 @@ import pytest
 import torch
 
 import qr_cl
-from qr_cl.render import SelectionCache
+from qr_cl.render import SelectionCache, rasterize_plan
+from qr_cl.stages import select
 
 
 def render(scene, cache, viewmat=None, sampler="quantile", k=8):
@@ -53,3 +54,19 @@ def test_cache_is_bounded_in_bytes_lru(random_scene):
     assert len(tiny) == 0                                # larger than the bound: not kept
     with pytest.raises(ValueError, match="positive"):
         SelectionCache(0)
+
+
+def test_get_if_room_keeps_what_fits_and_evicts_nothing(random_scene):
+    plan = rasterize_plan(*random_scene)
+
+    def make():
+        return select(plan, "quantile", 8)
+    one = SelectionCache._size(make())
+    cache = SelectionCache(max_bytes=int(1.5 * one))
+    first = cache.get_if_room(("room", 0, "quantile", 8), make)
+    assert cache.get_if_room(("room", 0, "quantile", 8), make) is first and len(cache) == 1
+    assert cache.get_if_room(("room", 1, "quantile", 8), make) is None     # no room: the caller selects
+    assert len(cache) == 1 and (cache.hits, cache.misses) == (1, 2)
+    tiny = SelectionCache(max_bytes=16)
+    assert tiny.get_if_room("a", make) is not None and len(tiny) == 0     # made, too large to keep
+    assert tiny.get_if_room("b", make) is None

@@ -7,27 +7,27 @@ import json
 import numpy as np
 import pytest
 
-from qr_cl.app.data import load_scene_folder
-from qr_cl.app.metrics import NYU40_NAMES
-from qr_cl.app.synthetic import synthetic_scene
+from qr_cl.app.evaluation.metrics import NYU40_NAMES
+from qr_cl.app.scenes.folders import load_scene_folder
+from qr_cl.app.scenes.synthetic import room_folder
 from synthetic_helpers import tiny_config
 
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
-    return synthetic_scene(tiny_config(3), tmp_path_factory.mktemp("cache"))
+    return room_folder(tiny_config(3), tmp_path_factory.mktemp("cache"))
 
 
 def test_same_seed_same_files_and_cache_reused(scene, tmp_path):
-    again = synthetic_scene(tiny_config(3), tmp_path)
+    again = room_folder(tiny_config(3), tmp_path)
     for rel in ("point_cloud.ply", "cameras.json", "classes.json", "labels/points.ply",
                 "labels/gaussian_labels.npy", "language_features/frame_000_s.npy",
                 "language_features/frame_002_f.npy"):
         assert filecmp.cmp(scene / rel, again / rel, shallow=False), rel
     mtime = (again / "point_cloud.ply").stat().st_mtime_ns
-    assert synthetic_scene(tiny_config(3), tmp_path) == again
+    assert room_folder(tiny_config(3), tmp_path) == again
     assert (again / "point_cloud.ply").stat().st_mtime_ns == mtime
-    other = synthetic_scene(tiny_config(4), tmp_path)
+    other = room_folder(tiny_config(4), tmp_path)
     assert not filecmp.cmp(scene / "point_cloud.ply", other / "point_cloud.ply", shallow=False)
 
 

@@ -5,10 +5,12 @@ import numpy as np
 import pytest
 import torch
 
-from qr_cl.app.baseline import fit_free_features
-from qr_cl.app.data import load_scene_folder
-from qr_cl.app.loss import contrastive_loss, sample_rays
-from qr_cl.app.train import TrainConfig, train
+from qr_cl.app.scenes.folders import load_scene_folder
+from qr_cl.app.training.baseline import fit_free_features
+from qr_cl.app.training.config import TrainConfig
+from qr_cl.app.training.loss import contrastive_loss
+from qr_cl.app.training.rays import sample_rays
+from qr_cl.app.training.trainer import train
 
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -73,7 +75,7 @@ def test_baseline_fits_one_scene(scene):
     assert feats.shape == (len(data.gaussians), data.feature_dim)
     assert np.allclose(np.linalg.norm(feats, axis=1), 1, atol=1e-5)
     # The fitted features now render close to the masks' features on a training view.
-    from qr_cl.app.loss import scene_loss
+    from qr_cl.app.training.rays import scene_loss
     untrained = torch.nn.functional.normalize(torch.randn(feats.shape, generator=torch.Generator().manual_seed(9)), dim=1)
     rng = lambda: np.random.default_rng(123)
     assert scene_loss(data, torch.from_numpy(feats), cfg, rng())[0] < 0.7 * scene_loss(data, untrained, cfg, rng())[0]

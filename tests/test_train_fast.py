@@ -7,13 +7,14 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from qr_cl.app.data import load_scene_folder
-from qr_cl.app.loss import (ViewSelections, contrastive_loss, cosine_logits, rays_loss, sample_rays, scene_loss,
-                            step_rays)
-from qr_cl.app import train as train_module
-from qr_cl.app.train import TrainConfig, conv_thread_count, train
+from qr_cl.app.scenes.folders import load_scene_folder
+from qr_cl.app.training import trainer as trainer_module
+from qr_cl.app.training.config import TrainConfig
+from qr_cl.app.training.loss import contrastive_loss, cosine_logits
+from qr_cl.app.training.rays import rays_loss, sample_rays, scene_loss, step_rays
+from qr_cl.app.training.trainer import conv_thread_count, train
 from qr_cl.backbone import GSNet, VoxelConfig, conv, devoxelize, minkunet14
-from qr_cl.render import rasterize
+from qr_cl.render import SelectionCache, rasterize
 from qr_cl.scene import Gaussians
 
 SMALL = dict(stem_channels=8, stem_kernel=3, enc_channels=(8, 16, 16), enc_blocks=(1, 1, 1),
@@ -71,7 +72,7 @@ def _cfg(scene, out, **kw) -> TrainConfig:
 def test_step_rays_gathered_equal_recomputed(scene, sampler, k):
     data = load_scene_folder(scene)
     cfg = _cfg(scene, "-", sampler=sampler, k=k)
-    views = ViewSelections(1 << 30)
+    views = SelectionCache(1 << 30)
     for seed in range(2):
         kept = step_rays(data, cfg, np.random.default_rng(seed), views)
         fresh = step_rays(data, cfg, np.random.default_rng(seed))
@@ -79,10 +80,10 @@ def test_step_rays_gathered_equal_recomputed(scene, sampler, k):
         for name, value in kept.selection.host().items():
             np.testing.assert_array_equal(value, fresh.selection.host()[name], err_msg=name)
         assert kept.n_rays == 3 * 200 and 0 < kept.touched < 1
-    assert 0 < len(views._views) <= len(data.frames) and views.nbytes > 0
-    none = ViewSelections(0)
-    step_rays(data, cfg, np.random.default_rng(0), none)
-    assert none.nbytes == 0 and not none._views
+    assert 0 < len(views) <= len(data.frames) and views.nbytes > 0 and views.hits > 0
+    full = SelectionCache(1)                  # no room for a whole view: its rays are selected afresh
+    step_rays(data, cfg, np.random.default_rng(0), full)
+    assert full.nbytes == 0 and len(full) == 0
 
 
 def test_compact_loss_equals_the_full_table_render(scene):
@@ -122,7 +123,7 @@ def test_same_seed_same_curve_with_or_without_kept_selections(scene, tmp_path):
     again = train(_cfg(scene, tmp_path / "b"), progress=False)
     fresh = train(_cfg(scene, tmp_path / "c", view_selections_mb=0), progress=False)
     assert kept.history == again.history == fresh.history
-    assert kept.views.nbytes > 0 and fresh.views.nbytes == 0
+    assert kept.views.nbytes > 0 and fresh.views is None
     assert all(0 < t < 1 for t in kept.touched)
 
 
@@ -132,7 +133,7 @@ def test_same_seed_same_curve_on_one_or_two_convolution_threads(scene, tmp_path,
     monkeypatch.setattr(conv, "MIN_SPLIT_PAIRS", 64)
     runs = []
     for cores in (1, 2):
-        monkeypatch.setattr(train_module, "process_cores", lambda cores=cores: cores)
+        monkeypatch.setattr(trainer_module, "process_cores", lambda cores=cores: cores)
         assert conv_thread_count() == cores
         runs.append(train(_cfg(scene, tmp_path / str(cores)), progress=False))
     one, two = runs
@@ -142,11 +143,11 @@ def test_same_seed_same_curve_on_one_or_two_convolution_threads(scene, tmp_path,
 
 
 def test_convolution_threads_times_torch_threads_fit_the_cores(monkeypatch):
-    monkeypatch.setattr(train_module, "process_cores", lambda: 2)
+    monkeypatch.setattr(trainer_module, "process_cores", lambda: 2)
     assert conv_thread_count() == 2            # one torch thread (this module's fixture)
     monkeypatch.setattr(torch, "get_num_threads", lambda: 2)
     assert conv_thread_count() == 1
-    monkeypatch.setattr(train_module, "process_cores", lambda: 1)
+    monkeypatch.setattr(trainer_module, "process_cores", lambda: 1)
     assert conv_thread_count() == 1
 
 
@@ -171,16 +172,17 @@ def test_cosine_logits_match_normalize_and_its_gradient():
 
 
 FREED_AND_AGAIN = """
-import resource, sys
+import sys
 import numpy as np
-from qr_cl.app.model import keep_freed_memory
+from qr_cl.app.process import keep_freed_memory
+from qr_cl.app.timing import minor_faults
 if sys.argv[1] == "keep" and not keep_freed_memory():
     print("no mallopt")
     sys.exit(0)
 np.ones(16 << 20, np.float32)                 # 64 MB allocated, touched, freed
-before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+before = minor_faults()
 np.ones(16 << 20, np.float32)                 # the same again
-print(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
+print(minor_faults() - before)
 """
 
 

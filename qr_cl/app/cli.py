@@ -4,7 +4,6 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
-import time
 import warnings
 from pathlib import Path
 
@@ -16,6 +15,7 @@ from ..runtime import NoDeviceError, choose_device, list_devices, trial_run
 from ..runtime.device import implementation, self_check_enabled
 from ..scene import SceneFormatError, load_cameras, load_layout_instance, load_scene, orbit_cameras
 from .images import save_alpha, save_depth, save_rgb
+from .timing import Stopwatch
 
 
 # Sub-commands implemented in their own modules, each with add_arguments(parser) and run(args).
@@ -52,7 +52,7 @@ def render_views(gaussians, cameras, out: Path, sh_degree: int | None, prefix: s
 
     out.mkdir(parents=True, exist_ok=True)
     degree = gaussians.sh_degree if sh_degree is None else min(sh_degree, gaussians.sh_degree)
-    start = time.perf_counter()
+    watch = Stopwatch()
     for i, cam in enumerate(tqdm(cameras, desc="render", unit="view")):
         image, alpha, meta = render_volume_fused(gaussians.means, gaussians.quats, gaussians.scales,
                                        gaussians.opacities, gaussians.sh, cam.viewmat, cam.K,
@@ -61,7 +61,7 @@ def render_views(gaussians, cameras, out: Path, sh_degree: int | None, prefix: s
         save_rgb(out / f"{name}_rgb.png", image.numpy())
         save_depth(out / f"{name}_depth.png", meta["depth"], alpha.numpy())
         save_alpha(out / f"{name}_alpha.png", alpha.numpy())
-    return time.perf_counter() - start
+    return watch.seconds
 
 
 def _cmd_render(args: argparse.Namespace) -> int:

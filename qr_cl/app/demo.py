@@ -1,7 +1,7 @@
 """``qr-cl demo``: the embedded default job, end to end on synthetic labelled rooms.
 
 1. Generates (or reuses from the cache) ``--train-scenes`` training rooms and one held-out room
-   (:mod:`qr_cl.app.synthetic`, "3dgs" style by default: semi-transparent shells, anisotropic
+   (:mod:`qr_cl.app.scenes.synthetic`, "3dgs" style by default: semi-transparent shells, anisotropic
    Gaussians and floaters, where a ray blends about 90 Gaussians; their "CLIP" features are
    simulated).
 2. Trains GS-Net through Q-Render (K=40) on the training rooms; the first ``--short-steps`` of
@@ -13,27 +13,29 @@
    mIoU19 also over the Gaussians the views reach, all the baseline can learn) and writes
    ``report.md`` (with the renderer comparison), ``results.json`` and images into ``--out``.
 
-The default budget (720 main / 240 comparison steps on 60k-Gaussian rooms) was chosen to stay
-well within 10 minutes on 2 cores: the demo took about 6 minutes for 120 / 40 steps on 24k-Gaussian
-flat rooms when a training step still computed every Gaussian's features, and 4.6 minutes for
-480 / 160 steps on the 60k rooms after the training-speed work (issue 11).
+The default budget (720 main / 240 comparison steps on 60k-Gaussian rooms) was chosen to keep
+the demo well within 10 minutes on 2 cores.
 """
 from __future__ import annotations
 
 import argparse
 import json
-import time
 from pathlib import Path
 
 import numpy as np
 
-from .baseline import fit_free_features
-from .data import load_scene_folder
-from .evaluate import (evaluate_features, ground_truth, markdown_table, network_features, reached_gaussians,
-                       write_visuals)
-from .model import cap_kernel_threads, keep_freed_memory, torch_threads
-from .synthetic import STYLES, SyntheticConfig, synthetic_scene
-from .train import TrainConfig, train
+from .evaluation.labels import ground_truth, reached_gaussians
+from .evaluation.scoring import evaluate_features, markdown_table
+from .evaluation.visuals import write_visuals
+from .process import cap_kernel_threads, keep_freed_memory, torch_threads
+from .scenes.folders import load_scene_folder
+from .scenes.room_config import STYLES, SyntheticConfig
+from .scenes.synthetic import room_folder
+from .timing import Stopwatch
+from .training.baseline import fit_free_features
+from .training.config import TrainConfig
+from .training.network import network_features
+from .training.trainer import train
 
 #: Gaussians per room of each synthetic style (the default of ``--gaussians``).
 ROOM_GAUSSIANS = {"3dgs": 60000, "flat": 24000}
@@ -49,7 +51,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--train-scenes", type=int, default=4, help="training rooms (default 4)")
     parser.add_argument("--style", choices=STYLES, default="3dgs",
                         help="3DGS-like rooms: semi-transparent shells of anisotropic Gaussians and floaters "
-                             "(default), or the flat opaque rooms of earlier releases (qr_cl/app/synthetic.py)")
+                             "(default), or the flat opaque rooms of earlier releases (qr_cl/app/scenes/synthetic.py)")
     parser.add_argument("--gaussians", type=int,
                         help="Gaussians per room (default: " + ", ".join(f"{n} for {s} rooms" for s, n in
                                                                         ROOM_GAUSSIANS.items()) + ")")
@@ -61,10 +63,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0)
 
 
-def _train(cfg, resume: bool = False) -> tuple[dict, float]:
-    start = time.perf_counter()
+def _train(cfg: TrainConfig, resume: bool = False) -> tuple[dict, float]:
+    """(the trained state, seconds) of a run of ``cfg``."""
+    watch = Stopwatch()
     trainer = train(cfg, resume=resume)
-    return trainer.state(), time.perf_counter() - start
+    return trainer.state(), watch.seconds
 
 
 def run(args: argparse.Namespace) -> int:
@@ -72,18 +75,18 @@ def run(args: argparse.Namespace) -> int:
 
     cap_kernel_threads()                      # before the first render (scene generation)
     keep_freed_memory()
-    t0 = time.perf_counter()
+    wall_clock = Stopwatch()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     cache = Path(args.cache) if args.cache else None
     seeds = list(range(args.seed, args.seed + args.train_scenes))
     held_seed = args.seed + 1000
     n_gaussians = args.gaussians or ROOM_GAUSSIANS[args.style]
-    paths = [synthetic_scene(SyntheticConfig(seed=s, n_gaussians=n_gaussians, style=args.style), cache)
+    paths = [room_folder(SyntheticConfig(seed=s, n_gaussians=n_gaussians, style=args.style), cache)
              for s in seeds + [held_seed]]
     train_paths, held_path = [str(p) for p in paths[:-1]], str(paths[-1])
     print(f"scenes: {len(train_paths)} training rooms + 1 held-out room ({n_gaussians} Gaussians each, "
-          f"{args.style} style) in {paths[0].parent} ({time.perf_counter() - t0:.0f} s)")
+          f"{args.style} style) in {paths[0].parent} ({wall_clock.seconds:.0f} s)")
     eval_scenes = {"held-out": load_scene_folder(held_path), "training": load_scene_folder(train_paths[0])}
     truths = {split: ground_truth(s) for split, s in eval_scenes.items()}
     gts = {split: labels for split, (labels, _) in truths.items()}
@@ -116,10 +119,9 @@ def run(args: argparse.Namespace) -> int:
         score("GS-Net", "Q-Render K=40", args.steps, lambda s: network_features(main_state, s))
         baseline = {}
         for split, scene in eval_scenes.items():
-            start = time.perf_counter()
-            bcfg = cfg("baseline", args.steps)
-            baseline[scene.name] = fit_free_features(scene, bcfg)
-            timings[f"per-scene baseline ({split} room), {args.steps} steps"] = time.perf_counter() - start
+            watch = Stopwatch()
+            baseline[scene.name] = fit_free_features(scene, cfg("baseline", args.steps))
+            timings[f"per-scene baseline ({split} room), {args.steps} steps"] = watch.seconds
         score("per-scene baseline", "Q-Render K=40", args.steps, lambda s: baseline[s.name])
         images = []
         for split, scene in eval_scenes.items():
@@ -127,7 +129,7 @@ def run(args: argparse.Namespace) -> int:
                                     out / "images" / "gsnet", views=(0, 1))
             images += write_visuals(scene, baseline[scene.name], gts[split], out / "images" / "baseline", views=(0, 1))
 
-    wall = time.perf_counter() - t0
+    wall = wall_clock.seconds
     table = markdown_table(rows)
     short = {label: {r["split"]: r for r in rows if r["method"] == f"GS-Net / {label} / {args.short_steps} steps"}
              for _, _, label in COMPARED}
@@ -137,8 +139,8 @@ def run(args: argparse.Namespace) -> int:
     report = ["# qr-cl demo", "",
               f"GS-Net (small sparse UNet) trained on {len(train_paths)} synthetic rooms; evaluated on a held-out "
               f"room ({Path(held_path).name}) and a training room ({Path(train_paths[0]).name}). The \"CLIP\" "
-              "features are simulated (class prototypes plus noise; see qr_cl/app/synthetic.py). mIoU/mAcc in % over "
-              f"the classes present, ground truth {truth_text}.", "", table, "",
+              "features are simulated (class prototypes plus noise; see qr_cl/app/scenes/synthetic.py). mIoU/mAcc in % "
+              f"over the classes present, ground truth {truth_text}.", "", table, "",
               f"## Renderers compared ({args.short_steps} steps of {args.views} views x {args.rays} rays each)", "",
               "The same network, budget and seed through each renderer (the Q-Render K=40 run is the first "
               f"{args.short_steps} steps of the main run). One seed per run: differences of a point or two are "

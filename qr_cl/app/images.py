@@ -39,7 +39,7 @@ def save_depth(path: str | os.PathLike, depth: np.ndarray, alpha: np.ndarray) ->
 def plot_transmittance_profiles(profiles: dict[str, tuple[np.ndarray, np.ndarray]], path: str,
                                 title: str = "") -> None:
     """Step plot of T against depth for each sampler of ``profiles`` (name -> (depths, T) from
-    :func:`qr_cl.stages.select.transmittance_profile`), saved to ``path`` (any matplotlib format)."""
+    :func:`qr_cl.app.experiments.transmittance.transmittance_profile`), saved to ``path`` (any matplotlib format)."""
     fig, ax = plt.subplots(figsize=(5, 3.5))
     for name, (depths, t) in profiles.items():
         if len(depths):

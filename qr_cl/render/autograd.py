@@ -127,7 +127,7 @@ class RasterFunction(torch.autograd.Function):
     alpha = 1 - T) -> splat_backward (mean2d, conic, opacity) -> project_backward (means, quats,
     scales, opacities). The selection is piecewise constant in the geometry and gets no gradient;
     for the K samplers alpha is returned detached (it is the walk's T, over Gaussians the
-    selection does not keep).
+    selection does not keep), and so it is when the Gaussians need no gradient.
     """
 
     @staticmethod
@@ -136,7 +136,7 @@ class RasterFunction(torch.autograd.Function):
         image = _blend_image(selection, features, background)
         t_walk = selection.t_walk.get()[:selection.n_rays]
         alpha = torch.from_numpy(1 - t_walk[:, None]).to(features.dtype)
-        if view.sampler != "volume":
+        if view.sampler != "volume" or not any(ctx.needs_input_grad[:4]):   # alpha is the geometry's
             ctx.mark_non_differentiable(alpha)
         ctx.selection, ctx.view = selection, view
         ctx.save_for_backward(means, quats, scales, features, background)

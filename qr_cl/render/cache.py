@@ -1,9 +1,10 @@
-"""Selections kept between calls: :class:`SelectionCache` (LRU, bounded in device bytes) and the
+"""Selections kept between calls: :class:`SelectionCache` (bounded in device bytes) and the
 digest :func:`selection_key` of what determines a Selection."""
 from __future__ import annotations
 
 import hashlib
 from collections import OrderedDict
+from typing import Callable, Hashable
 
 import numpy as np
 
@@ -12,7 +13,8 @@ from ..stages.select import Selection
 
 def selection_key(*arrays_and_values) -> str:
     """A digest of the arrays (bytes, shape, dtype) and values that determine a Selection:
-    Gaussians, camera, image size, near/far, sampler, K and rays. ~2 ms for 50k Gaussians."""
+    Gaussians, camera, image size, near/far, sampler, K and rays. Hashes every byte of the arrays,
+    so its cost grows with their size."""
     h = hashlib.blake2b(digest_size=20)
     for item in arrays_and_values:
         if isinstance(item, np.ndarray):
@@ -24,19 +26,22 @@ def selection_key(*arrays_and_values) -> str:
 
 
 class SelectionCache:
-    """Selections (with their RasterPlans) kept on the device between calls, least recently used
-    evicted first, at most ``max_bytes`` of device memory in all.
+    """Selections (with their RasterPlans) kept on the device between calls, at most ``max_bytes``
+    of device memory in all, under any hashable key: :func:`selection_key`'s digest
+    (:func:`qr_cl.rasterize`), or e.g. (scene, view, sampler, K) (training's whole-view selections).
 
     Selections depend on geometry, camera, sampler and K only, so training can reuse one per view
-    every epoch. A Selection larger than ``max_bytes`` is returned but not kept. Cache-free
-    rendering (no cache passed to :func:`qr_cl.rasterize`) is the default.
+    every epoch. :meth:`get` evicts the least recently used; :meth:`get_if_room` evicts nothing.
+    A Selection larger than ``max_bytes`` is returned but not kept. Cache-free rendering (no cache
+    passed to :func:`qr_cl.rasterize`) is the default.
     """
 
     def __init__(self, max_bytes: int) -> None:
         if max_bytes <= 0:
             raise ValueError(f"max_bytes must be positive, got {max_bytes}")
         self.max_bytes = int(max_bytes)
-        self._entries: OrderedDict[str, Selection] = OrderedDict()
+        self._entries: OrderedDict[Hashable, Selection] = OrderedDict()
+        self._last_size = 0
         self.hits = self.misses = 0
 
     @staticmethod
@@ -48,18 +53,43 @@ class SelectionCache:
         """Device bytes held now."""
         return sum(self._size(sel) for sel in self._entries.values())
 
-    def get(self, key: str, make) -> Selection:
-        """The Selection cached under ``key``, or ``make()``'s, which is then cached."""
+    def _hit(self, key: Hashable) -> Selection | None:
+        """The Selection kept under ``key`` (now the most recently used), counting the hit or miss."""
         if key in self._entries:
             self.hits += 1
             self._entries.move_to_end(key)
             return self._entries[key]
         self.misses += 1
+        return None
+
+    def _make(self, make: Callable[[], Selection]) -> tuple[Selection, int]:
         sel = make()
-        size = self._size(sel)
+        self._last_size = self._size(sel)
+        return sel, self._last_size
+
+    def get(self, key: Hashable, make: Callable[[], Selection]) -> Selection:
+        """The Selection cached under ``key``, or ``make()``'s, which is then cached (evicting the
+        least recently used until it fits)."""
+        sel = self._hit(key)
+        if sel is not None:
+            return sel
+        sel, size = self._make(make)
         if size <= self.max_bytes:
             while self._entries and self.nbytes + size > self.max_bytes:
                 self._entries.popitem(last=False)
+            self._entries[key] = sel
+        return sel
+
+    def get_if_room(self, key: Hashable, make: Callable[[], Selection]) -> Selection | None:
+        """The Selection cached under ``key``; else, while a Selection the size of the last one
+        made would still fit, ``make()``'s (cached if it fits, returned either way); else None.
+        Nothing is evicted, so nothing kept is made twice: keys drawn at random (training's views)
+        would otherwise evict each other, and the caller makes something cheaper instead."""
+        sel = self._hit(key)
+        if sel is not None or self.nbytes + self._last_size > self.max_bytes:
+            return sel
+        sel, size = self._make(make)
+        if self.nbytes + size <= self.max_bytes:
             self._entries[key] = sel
         return sel
 

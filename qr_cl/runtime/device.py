@@ -219,6 +219,16 @@ def bind(kernel: str, arg: KernelArg, x):
     return arg.dtype.type(x)
 
 
+def gpu_shapes(device: cl.Device) -> bool:
+    """Whether work on ``device`` is launched GPU-shaped (:attr:`Runtime.gpu_shaped`): on every
+    device but a CPU one, unless ``QR_CL_LAUNCH`` (``cpu`` or ``gpu``) says otherwise (that is how
+    the GPU shapes run on PoCL); ValueError for another value."""
+    forced = os.environ.get("QR_CL_LAUNCH", "").strip().lower()
+    if forced not in ("", "cpu", "gpu"):
+        raise ValueError(f"QR_CL_LAUNCH={forced!r}: use cpu or gpu")
+    return forced == "gpu" if forced else device_kind(device) != "cpu"
+
+
 @dataclass
 class Runtime:
     """One OpenCL context + in-order queue, with programs cached per (file, defines).
@@ -228,18 +238,24 @@ class Runtime:
     repeats it and programs a driver loads from a binary cache work as well.
     ``pool`` is the device memory pool every per-call device array comes from (see
     :func:`qr_cl.runtime.device_empty`): buffers freed by one call are reused by the next.
+    ``gpu_shaped``: launch GPU-shaped work (work-groups of :data:`GROUP_SIZE` over padded global
+    sizes, device sorts, many-work-item transposes) rather than CPU-shaped work (host sorts, a
+    few long work-items); set from :func:`gpu_shapes` when the Runtime is created, and settable
+    (that is how tests run both shapes on one device).
     """
 
     device: cl.Device
     context: cl.Context = field(init=False)
     queue: cl.CommandQueue = field(init=False)
     pool: cl_tools.MemoryPool = field(init=False, repr=False)
+    gpu_shaped: bool = field(init=False)
     _programs: dict = field(init=False, default_factory=dict)
 
     def __post_init__(self) -> None:
         self.context = cl.Context([self.device])
         self.queue = cl.CommandQueue(self.context)
         self.pool = cl_tools.MemoryPool(cl_tools.ImmediateAllocator(self.queue))
+        self.gpu_shaped = gpu_shapes(self.device)
 
     @property
     def max_buffer_bytes(self) -> int:
@@ -250,17 +266,6 @@ class Runtime:
     def is_cpu(self) -> bool:
         """True for a CPU device (the host is the device: host-side sorting pays off)."""
         return device_kind(self.device) == "cpu"
-
-    @property
-    def gpu_shaped(self) -> bool:
-        """Launch GPU-shaped work (work-groups of :data:`GROUP_SIZE` over padded global sizes,
-        device sorts, many-work-item transposes) rather than CPU-shaped work (host sorts, a few
-        long work-items). Every device but a CPU one, unless ``QR_CL_LAUNCH`` (``cpu`` or ``gpu``)
-        says otherwise: that is how the GPU shapes are tested on PoCL."""
-        forced = os.environ.get("QR_CL_LAUNCH", "").strip().lower()
-        if forced not in ("", "cpu", "gpu"):
-            raise ValueError(f"QR_CL_LAUNCH={forced!r}: use cpu or gpu")
-        return forced == "gpu" if forced else not self.is_cpu
 
     @property
     def host_unified(self) -> bool:

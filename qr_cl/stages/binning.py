@@ -87,8 +87,8 @@ class RasterPlan:
 
 class RenderMeta(Mapping):
     """The meta of a render: :meth:`RasterPlan.meta`'s entries, copied to the host on the first
-    access of one of them (at 3.7M tile pairs the copies take ~11 ms, a render ~250 ms), and the
-    ``extra`` entries given. A read-only mapping with the keys of both."""
+    access of one of them (a render whose meta is never read makes no copies), and the ``extra``
+    entries given. A read-only mapping with the keys of both."""
 
     def __init__(self, plan: RasterPlan, **extra) -> None:
         self._plan, self._extra, self._host = plan, extra, None
@@ -150,10 +150,9 @@ def host_sort(keys: torch.Tensor, out: tuple[torch.Tensor, torch.Tensor] | None 
               ) -> tuple[torch.Tensor, torch.Tensor]:
     """(sorted keys, int64 order) of a 1-D tensor by torch's stable sort, run on the calling
     thread alone. torch's OpenMP team gains little on N <= millions of keys, and its threads then
-    spin-wait for more work (libgomp's default) while the next kernels want every core: the fox's
-    K=10 render at 640x480 x 512 took 29.5 ms with the team, 26.6 ms without (its selection
-    kernel, right after the sort, 13.2 -> 11.0 ms). The thread count is torch's global setting,
-    so it is swapped under a lock and always restored."""
+    spin-wait for more work (libgomp's default) while the next kernels want every core, which
+    measured slower, the selection kernel right after the sort most of all. The thread count is
+    torch's global setting, so it is swapped under a lock and always restored."""
     with _SORT_THREADS:
         threads = torch.get_num_threads()
         torch.set_num_threads(1)
@@ -168,9 +167,9 @@ def sort_pairs(rt: Runtime, keys: cla.Array, values: cla.Array, key_bits: int) -
 
     On a CPU-shaped runtime the host is the device: the pairs are sorted on the host by torch's
     stable sort (:func:`host_sort`; a radix sort for int64 keys; keys of at most 63 bits keep
-    their order as int64), about 4-8x faster than numpy's stable argsort (a merge sort) and much faster than pyopencl's
-    GPU-style RadixSort there (see bench/test_bench_binning.py); its outputs are pooled host
-    arrays. On GPU-shaped ones (:attr:`qr_cl.runtime.Runtime.gpu_shaped`) pyopencl's RadixSort
+    their order as int64), measured faster than numpy's stable argsort (a merge sort) and than
+    pyopencl's GPU-style RadixSort there (see bench/test_bench_binning.py); its outputs are pooled
+    host arrays. On GPU-shaped ones (:attr:`qr_cl.runtime.Runtime.gpu_shaped`) pyopencl's RadixSort
     runs on the device, once :func:`device_sort_works` has checked it there; all are stable, so the
     order is the same.
     """
@@ -222,8 +221,8 @@ def _bin_counted(rt: Runtime, proj: Projection, tiles_x: int, n_tiles: int) -> t
     keys instead of M pairs; the culled ones, keyed INT32_MAX, come last and are cut off), then
     their M (Gaussian, tile) pairs by a stable counting sort by tile (bin_count / bin_fill). Each
     tile's list is by depth, then index, as the key sort gives it. No scan of the tiles touched:
-    M is the histogram's total. Measured on the 300k-Gaussian dense room (3.7M pairs), projection
-    included: 105 -> 39 ms."""
+    M is the histogram's total. Sorting N keys rather than M pairs measured faster on CPUs
+    (the "binning+sort" rows of qr-cl bench)."""
     keys = torch.from_numpy(_get(proj.depth_keys))
     sorted_keys, by_depth = host_sort(keys)
     n = int(torch.searchsorted(sorted_keys, np.iinfo(np.int32).max))

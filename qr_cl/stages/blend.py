@@ -14,6 +14,7 @@ import pyopencl.array as cla
 from ..runtime import (TILE, Runtime, channel_layout, check_buffer, device_empty, device_zeros,
                        padded_vector, streamed, to_device)
 from .select import Selection
+from .transpose import backward_order, transpose
 
 OWNERS_PER_CORE = 1   # the CPU backward scatter's work-items per compute unit
 OWNER_BINS = 4096     # ... whose Gaussian ranges are cut from a histogram of this many bins
@@ -82,7 +83,7 @@ def blend_backward(sel: Selection, dimage: cla.Array, channels: int, out: cla.Ar
     Each Gaussian's entries are summed by ray, then by position in the ray, so repeated calls
     return identical bytes, on either kernel (:func:`scatters` says which): a scatter by
     OWNERS_PER_CORE work-items per compute unit, each owning a range of Gaussians (no transpose),
-    or a gather over :meth:`Selection.transpose`.
+    or a gather over :func:`qr_cl.stages.transpose.transpose`.
     """
     rt = sel.plan.runtime
     vw, nv, cstride = channel_layout(channels, rt.gpu_shaped)
@@ -101,11 +102,11 @@ def blend_backward(sel: Selection, dimage: cla.Array, channels: int, out: cla.Ar
                   sel_w=sel.weights, dimage=dimage, cstride=cstride, touched=device_zeros(rt, max(sel.n_gaussians, 1), np.uint8),
                   dfeatures=dfeatures)
         return dfeatures
-    t = sel.transpose()
+    t = transpose(sel)
     n_chunks = cstride // (vw * nv)
     size, local = work_groups(rt, sel.n_gaussians, n_chunks)
     rt.launch("blend_backward", (size, n_chunks), defines={"VW": vw, "NV": nv}, local_size=local,
-              n=sel.n_gaussians, order=sel.backward_order(), n_chunks=t.chunks, cursor=t.cursor, t_ray=t.ray,
+              n=sel.n_gaussians, order=backward_order(sel), n_chunks=t.chunks, cursor=t.cursor, t_ray=t.ray,
               t_w=t.weight, dimage=dimage, n_rays=sel.n_rays, cstride=cstride, dfeatures=dfeatures)
     return dfeatures
 
@@ -132,11 +133,10 @@ def owner_bounds(sel: Selection, owners: int) -> np.ndarray:
 def scatters(sel: Selection) -> bool:
     """Whether :func:`blend_backward` scatters rather than gathers over the transpose: on CPU-shaped
     runtimes, for whole images (at least as many rays as Gaussians) and for pixel subsets whose
-    transpose was not made ahead (:func:`prepare_backward`); GPU shapes always gather. Measured
-    on PoCL: the scatter takes a 300k-Gaussian room's 640x480 K=40 backward from 754 ms (gather)
-    + 118 ms (transpose) to about 300 ms, and 4 x 2048 random rays of the fox, forward and
-    backward, from 181 to 114 ms; a training step's 8192 rays over ~25k Gaussians, transposed
-    ahead on another thread, take 14.6 ms by the gather and 17 ms by the scatter."""
+    transpose was not made ahead (:func:`prepare_backward`); GPU shapes always gather. On PoCL the
+    scatter needs no transpose, so it measured faster for whole images and for subsets that would
+    otherwise transpose on the spot; a transpose made ahead on another thread leaves the gather
+    slightly faster (see qr-cl bench)."""
     if sel.plan.runtime.gpu_shaped:
         return False
     return sel.n_rays >= sel.n_gaussians or sel.transposed is None
@@ -146,7 +146,7 @@ def prepare_backward(sel: Selection) -> None:
     """Make ahead what :func:`blend_backward` will need of ``sel`` (geometry only: the transpose,
     for GPU shapes and pixel subsets), e.g. on another thread while the network runs."""
     if sel.plan.runtime.gpu_shaped or sel.n_rays < sel.n_gaussians:
-        sel.transpose()
+        transpose(sel)
 
 
 def _ray_pixels(sel: Selection) -> dict:
@@ -191,7 +191,7 @@ def splat_backward(sel: Selection, d_alpha: cla.Array) -> cla.Array:
     selection's transpose in a fixed order (bitwise reproducible). Entries whose alpha was
     clamped to ALPHA_MAX contribute nothing."""
     rt = sel.plan.runtime
-    t = sel.transpose()
+    t = transpose(sel)
     d_splats = device_empty(rt, (sel.n_gaussians, 8), np.float32)
     # splat_backward reads no feature rows; blend.cl is built with some row vector width all the same
     rt.launch("splat_backward", sel.n_gaussians, defines={"VW": 1, "NV": 1}, n=sel.n_gaussians,

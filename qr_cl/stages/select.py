@@ -1,4 +1,4 @@
-"""Selection stage (select.cl, transpose.cl): which Gaussians each ray blends, with what weight.
+"""Selection stage (select.cl): which Gaussians each ray blends, with what weight.
 
 A Selection depends only on geometry, camera, sampler and K, never on features: it is computed
 once per view and shared by the blend forward and backward (:mod:`qr_cl.stages.blend`).
@@ -19,32 +19,18 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from functools import lru_cache
-from typing import Callable, NamedTuple
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 import pyopencl as cl
 import pyopencl.array as cla
-from pyopencl.scan import InclusiveScanKernel
 
 from ..runtime import (BLOCK_GROUP, SAMPLERS, TILE, Runtime, check_buffer, device_empty, device_zeros, exclusive_scan,
                        last_value, to_device)
-from .binning import SORT_BYTES_PER_KEY, RasterPlan, sort_pairs
+from .binning import SORT_BYTES_PER_KEY, RasterPlan
 
-CHUNKS_PER_CORE = 4          # the CPU transpose splits the rays into this many chunks per compute unit
-MAX_HIST = 1 << 24            # ... and n_gaussians * chunks stays below this many ints
-
-
-class Transpose(NamedTuple):
-    """A Selection's entries grouped by Gaussian (:meth:`Selection.transpose`): cursor [N * chunks]
-    int32 (cursor[(g+1) * chunks - 1] is the end of Gaussian g's segment), and per transposed
-    entry its ray [E] int32, weight [E] float32 and index [E] int32 into the selection's ids."""
-
-    cursor: cla.Array
-    ray: cla.Array
-    weight: cla.Array
-    entry: cla.Array
-    chunks: int
-
+if TYPE_CHECKING:
+    from .transpose import Transpose
 
 @dataclass
 class Selection:
@@ -56,8 +42,9 @@ class Selection:
     and topk: dense rows of K at p * K, padded with -1 / 0). Per ray (float32 [P]): ``t_walk`` the
     transmittance where the ray's walk stopped, ``t_sel`` the transmittance among the selected
     Gaussians before normalization (T^Q; the final T for volume), ``t_rem`` the background weight.
-    ``k`` is K (0 for volume); ``n_gaussians`` is N of the plan. ``transposed`` caches
-    :meth:`transpose` (the blend backward's view of the selection); ``owners`` the backward
+    ``k`` is K (0 for volume); ``n_gaussians`` is N of the plan. ``transposed`` and ``order`` cache
+    :func:`qr_cl.stages.transpose.transpose` and its backward order (the blend backward's view of
+    the selection); ``owners`` the backward
     scatter's owner bounds by number of owners (:func:`qr_cl.stages.blend.owner_bounds`).
     ``pending`` is the deferred selection kernel of ``select(..., defer=True)`` until it is
     enqueued: by the first blend forward, fused with it, or by :meth:`ready`.
@@ -107,27 +94,6 @@ class Selection:
         """(global size of a per-ray kernel, full-image flag)."""
         return ray_launch(self.plan, self.pixels)
 
-    def transpose(self) -> Transpose:
-        """The entries grouped by Gaussian (transpose.cl, no float atomics), computed once and kept
-        in ``transposed`` (and :meth:`backward_order` in ``order``): a counting sort by a few long
-        work-items on CPU-shaped runtimes, a device sort of (Gaussian, entry) keys on GPU-shaped
-        ones; the same bytes either way.
-
-        Within a Gaussian, entries are ordered by ray then by position in the ray.
-        """
-        if self.transposed is None:
-            self.transposed = (_transpose_sorted if self.plan.runtime.gpu_shaped else _transpose_counted)(self)
-            self.order = _backward_order(self, self.transposed)
-        return self.transposed
-
-    def backward_order(self) -> cla.Array:
-        """The Gaussians [N] int32 in the order the blend backward takes them: by the tile, then
-        the ray, of the first ray of their transposed entries (Gaussians without entries last),
-        so neighbouring work-items gather neighbouring rows of dImage. Made with the transpose,
-        by host work only (a training step's next transpose runs on another thread)."""
-        self.transpose()
-        return self.order
-
     def spans(self) -> tuple[np.ndarray, np.ndarray]:
         """(offsets, count) [P] int64 on the host, each ray's count bounded by the id buffer as
         the kernels bound it (``ray_span`` in kernels/common.h)."""
@@ -152,7 +118,6 @@ class Selection:
                 "t_sel": self.t_sel.get()[:n], "t_rem": self.t_rem.get()[:n]}
 
 
-
 def check_pixels(pixels, width: int, height: int) -> np.ndarray:
     """pixels [P,2] integer (x, y) as a contiguous int32 array; ValueError if malformed or outside
     the width x height image."""
@@ -167,77 +132,6 @@ def check_pixels(pixels, width: int, height: int) -> np.ndarray:
         x, y = arr[np.argmax(bad)]
         raise ValueError(f"{int(bad.sum())} pixel(s) outside the {width}x{height} image, e.g. ({x}, {y})")
     return np.ascontiguousarray(arr, np.int32)
-
-
-def _transpose_counted(sel: Selection) -> Transpose:
-    """CPU-shaped transpose (transpose_count / transpose_fill): a stable counting sort by a few
-    long work-items, each owning a contiguous chunk of rays."""
-    rt = sel.plan.runtime
-    n, n_rays = sel.n_gaussians, sel.n_rays
-    # enough chunks to keep every core busy, no more: each adds a cursor slot per Gaussian (64
-    # chunks held 77 MB of cursor for 300k Gaussians; 8 on 2 cores, 9.6 MB, within 5 % of its time)
-    chunks = max(1, min(CHUNKS_PER_CORE * rt.device.max_compute_units, n_rays, MAX_HIST // max(n, 1)))
-    rays_per = -(-n_rays // chunks) if n_rays else 1
-    cursor = device_zeros(rt, n * chunks, np.int32)
-    args = dict(n_rays=n_rays, rays_per=rays_per, n_chunks=chunks, offsets=sel.offsets,
-                count=sel.count, n_entries=sel.ids.size, n=n, sel_ids=sel.ids)
-    if n_rays:
-        rt.launch("transpose_count", chunks, **args, bin_shift=0, hist=cursor)
-    total = int(cla.sum(cursor).get())      # the entries placed (counts bounded, ids in the scene)
-    t_ray = device_empty(rt, max(total, 1), np.int32)
-    t_w = device_empty(rt, max(total, 1), np.float32)
-    t_entry = device_empty(rt, max(total, 1), np.int32)
-    if n_rays:
-        exclusive_scan(rt, cursor)
-        rt.launch("transpose_fill", chunks, **args, sel_w=sel.weights, cursor=cursor,
-                  t_ray=t_ray, t_w=t_w, t_entry=t_entry)
-    return Transpose(cursor, t_ray, t_w, t_entry, chunks)
-
-
-def _backward_order(sel: Selection, t: Transpose) -> cla.Array:
-    """See :meth:`Selection.backward_order`."""
-    plan = sel.plan
-    ends = t.cursor.get().reshape(-1, t.chunks)[:, -1].astype(np.int64)
-    starts = np.concatenate([[0], ends[:-1]])
-    first = t.ray.get()[np.minimum(starts, t.ray.size - 1)]
-    xy = (np.stack([first % plan.width, first // plan.width], 1) if sel.pixels is None
-          else sel.pixels[np.minimum(first, max(len(sel.pixels) - 1, 0))])
-    tile = np.where(ends > starts, (xy[:, 1] // TILE) * plan.tiles_x + xy[:, 0] // TILE, np.iinfo(np.int32).max)
-    return to_device(plan.runtime, np.lexsort((first, tile)), np.int32)
-
-
-@lru_cache(maxsize=None)
-def _max_scan(context: cl.Context) -> InclusiveScanKernel:
-    return InclusiveScanKernel(context, np.int32, "max(a, b)", "0")
-
-
-def _transpose_sorted(sel: Selection) -> Transpose:
-    """GPU-shaped transpose (transpose_keys -> device sort -> transpose_gather -> max-scan): one
-    work-item per ray or entry; the same entries in the same order as :func:`_transpose_counted`,
-    with one chunk (cursor[g] = the end of Gaussian g's segment)."""
-    rt, n, n_rays = sel.plan.runtime, sel.n_gaussians, sel.n_rays
-    spans = device_zeros(rt, max(n_rays, 1), np.int32)       # the counts bounded by the buffers
-    if n_rays:
-        rt.launch("ray_spans", n_rays, n_rays=n_rays, offsets=sel.offsets, count=sel.count,
-                  n_entries=sel.ids.size, spans=spans)
-    compact = exclusive_scan(rt, spans, device_empty(rt, max(n_rays, 1), np.int32))
-    total = last_value(compact) + last_value(spans) if n_rays else 0
-    cursor = device_zeros(rt, n, np.int32)
-    t_ray, t_w = device_empty(rt, max(total, 1), np.int32), device_empty(rt, max(total, 1), np.float32)
-    t_entry = device_empty(rt, max(total, 1), np.int32)
-    if total:
-        keys, values = device_empty(rt, total, np.uint64), device_empty(rt, total, np.int32)
-        entry_ray, entry_w = device_empty(rt, total, np.int32), device_empty(rt, total, np.float32)
-        entry_index = device_empty(rt, total, np.int32)
-        rt.launch("transpose_keys", n_rays, n_rays=n_rays, offsets=sel.offsets, count=sel.count,
-                  n_entries=sel.ids.size, n=n, compact=compact, sel_ids=sel.ids, sel_w=sel.weights, keys=keys, values=values,
-                  entry_ray=entry_ray, entry_w=entry_w, entry_index=entry_index)
-        keys, values = sort_pairs(rt, keys, values, 32 + max(1, int(n).bit_length()))
-        rt.launch("transpose_gather", total, n=total, n_gaussians=n, keys=keys, values=values, entry_ray=entry_ray,
-                  entry_w=entry_w, entry_index=entry_index, t_ray=t_ray, t_w=t_w, t_entry=t_entry,
-                  ends=cursor)
-        _max_scan(rt.context)(cursor)
-    return Transpose(cursor, t_ray, t_w, t_entry, 1)
 
 
 def ray_launch(plan: RasterPlan, pixels: np.ndarray | None) -> tuple[int, int]:
@@ -291,8 +185,8 @@ def check_sampler(sampler: str, k) -> int:
 @lru_cache(maxsize=4)
 def row_offsets(queue: cl.CommandQueue, n_rays: int, k: int) -> cla.Array:
     """The offsets [P] int32 p * K of a selection in rows of K slots, made once per (P, K) and
-    shared by the selections that use them (never written: a whole image's took about 0.7 ms to
-    fill per call, 6 % of the fox's K=10 selection)."""
+    shared by the selections that use them (never written: filling a whole image's anew on every
+    call was a visible share of a selection)."""
     return cla.arange(queue, 0, n_rays * k, k, dtype=np.int32)
 
 
@@ -351,169 +245,3 @@ def select(plan: RasterPlan, sampler: str = "quantile", k: int = 40, pixels=None
                              pending=launch)
         launch()
     return Selection(plan, sampler, k, pixels, ids, weights, offsets, count, t_walk, t_sel, t_rem)
-
-
-def transmittance_profile(selection: Selection, ray: int) -> tuple[np.ndarray, np.ndarray]:
-    """Transmittance along ray ``ray`` as its sampler sees it: (depths [n] of the selected
-    Gaussians in camera z, T [n+1] before the first and after each selected Gaussian).
-
-    volume: T_i of the full walk; quantile/topk: T^Q among the selected (un-normalized). This is
-    what the paper's Fig. 3 plots (see :func:`qr_cl.app.images.plot_transmittance_profiles`).
-    """
-    h = selection.host()
-    n = int(h["count"][ray])
-    ids, w = h["ids"][ray, :n], h["weights"][ray, :n].astype(np.float64)
-    scale = 1.0 if selection.sampler == "volume" else 1.0 - float(h["t_sel"][ray])
-    t = 1.0 - np.concatenate([[0.0], np.cumsum(w * scale)])
-    depths = selection.plan.splats.get().reshape(-1, 8)[ids, 6] if n else np.zeros(0, np.float32)
-    return depths, t
-
-
-# ----------------------------------------------------------------------------------------------
-# subsets of rays and compact id tables (training: rays sampled from per-view selections, and
-# features computed only for the Gaussians a step's selections use)
-# ----------------------------------------------------------------------------------------------
-
-def ray_entries(offsets: np.ndarray, count: np.ndarray) -> np.ndarray:
-    """Positions [E] int64 in ``ids`` / ``weights`` of every entry of the rays with these
-    ``offsets`` and ``count`` [P] (host arrays of a Selection), ray by ray, in entry order."""
-    count = np.asarray(count, np.int64)
-    starts = np.repeat(np.asarray(offsets, np.int64) - (np.cumsum(count) - count), count)
-    return starts + np.arange(int(count.sum()), dtype=np.int64)
-
-
-def gather_rays(selection: Selection, rays) -> Selection:
-    """The Selection of the rays ``rays`` [P] (integer indices into ``selection``'s rays; for a
-    whole-image selection ray y * width + x), copied on the device: the same entries, weights and
-    per-ray transmittances that :func:`select` computes for those pixels, so a view's whole-image
-    selection, computed once, serves any subset of its rays.
-
-    The result has ``pixels`` [P,2] (x, y) set; quantile/top-K keep dense rows of K (a ray's K
-    slots copied whole, padding included), volume gets a fresh CSR list.
-    """
-    rays = np.asarray(rays)
-    if rays.ndim != 1 or (rays.size and not np.issubdtype(rays.dtype, np.integer)):
-        raise ValueError(f"rays must be a 1-D integer array, got {rays.dtype} {rays.shape}")
-    rays = rays.astype(np.int64)
-    n_all = selection.n_rays
-    if rays.size and (rays.min() < 0 or rays.max() >= n_all):
-        raise ValueError(f"rays must index the selection's {n_all} rays, got [{rays.min()}, {rays.max()}]")
-    if selection.pixels is None:
-        width = selection.plan.width
-        pixels = np.stack([rays % width, rays // width], 1).astype(np.int32)
-    else:
-        pixels = np.ascontiguousarray(selection.pixels[rays], np.int32)
-    rt = selection.plan.runtime
-    n = len(rays)
-    if n == 0:
-        return Selection(selection.plan, selection.sampler, selection.k, pixels, device_empty(rt, 1, np.int32),
-                         device_empty(rt, 1, np.float32), device_zeros(rt, 1, np.int32),
-                         *(device_zeros(rt, 1, dt) for dt in (np.int32, np.float32, np.float32, np.float32)))
-    k = selection.k
-    if selection.sampler == "volume":
-        all_offsets, all_count = selection.spans()
-        count = all_count[rays]
-        offsets = (np.cumsum(count) - count).astype(np.int32)
-        source = ray_entries(all_offsets[rays], count)
-    else:                                    # dense rows: ray p's K slots start at p * K
-        offsets = np.arange(0, n * k, k, dtype=np.int32)
-        source = (rays[:, None] * k + np.arange(k)).ravel()
-    if source.size == 0:
-        ids, weights = device_empty(rt, 1, np.int32), device_empty(rt, 1, np.float32)
-    else:
-        index = to_device(rt, source, np.int32)
-        ids, weights = cla.take(selection.ids, index), cla.take(selection.weights, index)
-    ray_index = to_device(rt, rays, np.int32)
-    per_ray = [cla.take(a, ray_index) for a in (selection.count, selection.t_walk, selection.t_sel, selection.t_rem)]
-    return Selection(selection.plan, selection.sampler, k, pixels, ids, weights, to_device(rt, offsets, np.int32),
-                     *per_ray)
-
-
-@dataclass
-class CompactSelection(Selection):
-    """A Selection whose entry ids index a compact table of ``n_rows`` rows (see
-    :func:`compact_selections`) instead of the plan's Gaussians: blend it with features
-    [n_rows, C]; the blend backward then returns dF [n_rows, C]."""
-
-    n_rows: int = 0
-
-    @property
-    def n_gaussians(self) -> int:
-        return self.n_rows
-
-
-def remap_ids(selection: Selection, lut: np.ndarray, n_rows: int) -> CompactSelection:
-    """``selection`` with every entry id g replaced by ``lut[g]`` (lut [N] integer, values in
-    0..n_rows-1 for every Gaussian an entry uses), as a :class:`CompactSelection` of ``n_rows``
-    rows sharing the other device arrays. Padding slots of dense rows become -1."""
-    return _remap(selection, *_host_entries(selection), lut, n_rows)
-
-
-def _host_entries(selection: Selection) -> tuple[np.ndarray, np.ndarray]:
-    """(ids [len(selection.ids)] int32 on the host, positions [E] of the rays' entries in it)."""
-    return selection.ids.get(), ray_entries(*selection.spans())
-
-
-def _remap(selection: Selection, ids: np.ndarray, entries: np.ndarray, lut: np.ndarray,
-           n_rows: int) -> CompactSelection:
-    used = ids[entries]
-    if used.size and (used.min() < 0 or used.max() >= len(lut)):
-        raise ValueError(f"lut has {len(lut)} rows; the selection uses ids up to {used.max()}")
-    mapped = np.asarray(lut)[used]
-    if mapped.size and (mapped.min() < 0 or mapped.max() >= n_rows):
-        raise ValueError(f"lut maps the selection's ids outside 0..{n_rows - 1}")
-    remapped = np.full(ids.shape, -1, np.int32)
-    remapped[entries] = mapped
-    return CompactSelection(selection.plan, selection.sampler, selection.k, selection.pixels,
-                            to_device(selection.plan.runtime, remapped, np.int32), selection.weights, selection.offsets, selection.count,
-                            selection.t_walk, selection.t_sel, selection.t_rem, n_rows=int(n_rows))
-
-
-def compact_selections(selections: list[Selection]) -> tuple[np.ndarray, list[CompactSelection]]:
-    """The Gaussians that ``selections`` (of one scene: the same N) use, and the selections
-    re-indexed into them: (rows [U] int64, the used Gaussian ids ascending; one
-    :class:`CompactSelection` of U rows per input). Blending a compact selection with
-    ``features[rows]`` [U,C] gives the image blending the original with ``features`` [N,C] gives
-    (the same entries in the same order), and its backward's dF [U,C] are the rows ``rows`` of
-    the original's dF (the others are zero)."""
-    if not selections:
-        return np.zeros(0, np.int64), []
-    n = selections[0].n_gaussians
-    if any(s.n_gaussians != n for s in selections):
-        raise ValueError(f"selections of different scenes: N = {sorted({s.n_gaussians for s in selections})}")
-    hosts = [_host_entries(s) for s in selections]
-    used = np.zeros(n, bool)
-    for ids, entries in hosts:
-        used[ids[entries]] = True
-    rows = np.flatnonzero(used)
-    lut = (np.cumsum(used) - 1).astype(np.int32)
-    return rows, [_remap(s, ids, entries, lut, len(rows)) for s, (ids, entries) in zip(selections, hosts)]
-
-
-def concat_selections(selections: list[Selection]) -> Selection:
-    """The rays of several pixel-subset selections over the same Gaussians (e.g. a training step's
-    views of one scene, same sampler and K) one after the other, as one Selection: ray i of part j
-    is ray (rays of parts before j) + i, with the same entries, weights and transmittances, so one
-    blend (and one backward, one transpose) serves them all and its image rows are the parts'
-    images stacked. The result keeps the first part's plan (runtime, N) and every part's
-    ``pixels`` (each in its own view's image); it is a CompactSelection when the parts are."""
-    if not selections:
-        raise ValueError("no selections to concatenate")
-    first = selections[0]
-    if any(s.pixels is None for s in selections):
-        raise ValueError("concat_selections takes pixel subsets (gather_rays makes one from a whole image)")
-    if any((s.sampler, s.k, s.n_gaussians, type(s)) != (first.sampler, first.k, first.n_gaussians, type(first))
-           for s in selections):
-        raise ValueError("the selections differ in sampler, K, Gaussians or kind")
-    parts = [s for s in selections if s.n_rays]
-    if not parts:
-        return first
-    q = first.plan.runtime.queue
-    base = np.cumsum([0] + [s.ids.shape[0] for s in parts[:-1]])
-    offsets = np.concatenate([s.offsets.get()[:s.n_rays] + b for s, b in zip(parts, base)]).astype(np.int32)
-    entries = {name: cla.concatenate([getattr(s, name) for s in parts], queue=q) for name in ("ids", "weights")}
-    per_ray = {name: cla.concatenate([getattr(s, name)[:s.n_rays] for s in parts], queue=q)
-               for name in ("count", "t_walk", "t_sel", "t_rem")}
-    extra = {"n_rows": first.n_rows} if isinstance(first, CompactSelection) else {}
-    return type(first)(first.plan, first.sampler, first.k, np.concatenate([s.pixels for s in parts]),
-                       offsets=to_device(first.plan.runtime, offsets, np.int32), **entries, **per_ray, **extra)

@@ -187,9 +187,10 @@ def select(proj: dict, ranges: np.ndarray, ids: np.ndarray, pixels: np.ndarray, 
     """Selection of rays ``pixels`` [P,2] (x, y) for sampler "volume", "quantile", "topk" or
     "stratified".
 
-    proj: means2d, conics, opacities per Gaussian (a RasterPlan's meta() or :func:`project`);
-    ranges/ids: per-tile depth-sorted lists. Returns ids [P,L] (-1 padded), weights [P,L]
-    (0 padded), count, t_walk, t_sel, t_rem [P], as Selection.host().
+    proj: means2d, conics, opacities per Gaussian (a RasterPlan's meta() or
+    :func:`qr_cl.stages.project_ref.project`); ranges/ids: per-tile depth-sorted lists. Returns
+    ids [P,L] (-1 padded), weights [P,L] (0 padded), count, t_walk, t_sel, t_rem [P], as
+    Selection.host().
     """
     tiles_x = tile_grid(width, 1)[0]
     rows = []

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pyopencl.array as cla
 
-from ..runtime import Runtime, channel_layout, streamed
-from ..stages.blend import work_groups
-from .timing import measure
+from ...runtime import Runtime, channel_layout, streamed
+from ...stages import work_groups
+from ..timing import measure
 
 FMA_ITERS = 4096
 

@@ -1,10 +1,11 @@
-"""A small procedural scene of Gaussians made in code (no files needed): used by `qr-cl bench`, tests and examples."""
+"""Procedural Gaussians made in code (no files needed): surfaces of flat Gaussians, a small scene
+and a dense indoor room; used by `qr-cl bench`, the synthetic rooms, tests and examples."""
 from __future__ import annotations
 
 import numpy as np
 
-from ..runtime import SH_C0
-from ..scene import Camera, Gaussians, look_at
+from ...runtime import SH_C0
+from ...scene import Camera, Gaussians, look_at
 
 
 def surface_gaussians(points: np.ndarray, normals: np.ndarray, rgb: np.ndarray, size: float,
@@ -32,6 +33,11 @@ def surface_gaussians(points: np.ndarray, normals: np.ndarray, rgb: np.ndarray, 
         sh[:, 1:] = rng.normal(0, 0.05, (n, 3, 3))
     return Gaussians(points.astype(np.float32), quats.astype(np.float32), scales.astype(np.float32),
                      rng.uniform(*opacity, n).astype(np.float32), sh.astype(np.float32))
+
+
+def unit(v: np.ndarray) -> np.ndarray:
+    """``v`` [..., D] divided by its norm along the last axis (unit vectors or rows)."""
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
 
 
 def concat(parts: list[Gaussians]) -> Gaussians:
@@ -105,13 +111,9 @@ def dense_room(n: int = 300_000, seed: int = 0, layers: int = 12,
                                        colour_noise=0.08, opacity=(0.05, 0.5)))
     m = n - sum(len(p) for p in parts)                                # floaters
     floaters = surface_gaussians(rng.uniform((0.2, 0.2, 0.2), (w - 0.2, d - 0.2, h - 0.2), (m, 3)),
-                                 _unit_rows(rng.normal(size=(m, 3))), rng.random((m, 3)), spacing, rng,
+                                 unit(rng.normal(size=(m, 3))), rng.random((m, 3)), spacing, rng,
                                  jitter=(0.5, 1.5), colour_noise=0.0, opacity=(0.01, 0.05))
     f = 0.8125 * width                                               # 520 px at 640 px wide
     camera = look_at((0.25 * w, 0.2 * d, 0.45 * h), (0.8 * w, 0.9 * d, 0.35 * h), (0, 0, 1), f, f,
                      width, height, name="dense-room")
     return concat(parts + [floaters]), camera
-
-
-def _unit_rows(v: np.ndarray) -> np.ndarray:
-    return v / np.linalg.norm(v, axis=1, keepdims=True)

@@ -1,6 +1,5 @@
-"""GS-Net as the application builds it: UNet presets, the network, and its threads.
-
-The network takes a scene's Gaussians as they are (``net.prepare([scene.gaussians])``)."""
+"""The process's resources as the commands set them: cores for the kernels, torch's threads, and
+glibc's handling of freed memory."""
 from __future__ import annotations
 
 import ctypes
@@ -9,21 +8,6 @@ import os
 from contextlib import contextmanager
 
 import torch
-
-from ..backbone import GSNet, VoxelConfig, minkunet14
-
-#: UNet presets: name -> overrides of backbone.minkunet14 (empty = MinkUNet14 itself).
-NETS: dict[str, dict] = {
-    "tiny": dict(stem_channels=8, stem_kernel=3, enc_channels=(8, 16, 16, 16), dec_channels=(16, 16, 16, 16)),
-    "small": dict(stem_channels=16, enc_channels=(16, 32, 64, 64), dec_channels=(64, 64, 48, 48)),
-    "mink14": {},
-}
-
-
-def build_net(net: str, feature_dim: int, grid_size: float):
-    """A GSNet with the UNet preset ``net`` (see :data:`NETS`) predicting ``feature_dim``-D features."""
-    voxels = VoxelConfig(grid_size=grid_size)
-    return GSNet(feature_dim, voxels, minkunet14(voxels.num_features, **NETS[net]))
 
 
 def process_cores() -> int:
@@ -39,11 +23,10 @@ def cap_kernel_threads() -> int:
     Returns the value in force.
 
     The kernels and torch take turns: the thread that launches a kernel waits for it, and the
-    sparse convolutions run while no kernel does (:mod:`qr_cl.app.train`); only the next step's
-    selections (geometry) run beside the blend, on the same PoCL workers. Measured on 2 cores,
-    training steps on the flat demo rooms: 2 workers against 1 took the blend from 1.05 to 1.5
-    cores busy and a step from 175 to 161 ms; beside two busy loops a step took 2.0x its time
-    alone with 2 workers (1.5x with 1).
+    sparse convolutions run while no kernel does (:mod:`qr_cl.app.training.trainer`); only the next step's
+    selections (geometry) run beside the blend, on the same PoCL workers. So a worker per core
+    measured faster for a training step than one worker, though it suffers more when other
+    processes keep the cores busy.
     """
     os.environ.setdefault("POCL_MAX_PTHREAD_COUNT", str(process_cores()))
     return int(os.environ["POCL_MAX_PTHREAD_COUNT"])
@@ -65,8 +48,7 @@ def keep_freed_memory() -> bool:
     demo and reproduce call this, never the library. Returns False where the C library has no
     mallopt (not glibc), changing nothing.
 
-    Measured with ``qr-cl train`` on three demo rooms (60k Gaussians), steps 5 to 205: sys time
-    15.3 -> 11.9 % of the wall time, page faults per step 1843 -> 472."""
+    With it a training step measured less system time and fewer page faults (``qr-cl train``)."""
     libc = ctypes.CDLL(ctypes.util.find_library("c"))
     mallopt = getattr(libc, "mallopt", None)
     if mallopt is None:
@@ -78,9 +60,8 @@ def keep_freed_memory() -> bool:
 def torch_threads(n: int):
     """Run the block with ``n`` torch intra-op threads (restored after). One thread is the default
     for training: PoCL renders with its own threads, and torch's OpenMP workers spin badly when the
-    cores are shared (a 0.7 s step took 60 s with 2 threads on a busy 2-core machine; measured
-    again on the demo rooms beside other busy processes: 2 threads made a step 3.6-16x slower than
-    1 thread with libgomp's default spinning, 2-3.9x with ``OMP_WAIT_POLICY=PASSIVE``). Torch's
+    cores are shared (beside other busy processes, 2 threads made a step many times slower than 1,
+    with libgomp's default spinning and, less so, with ``OMP_WAIT_POLICY=PASSIVE``). Torch's
     results depend on the thread count, so it is fixed for a run, never adapted to the load."""
     old = torch.get_num_threads()
     torch.set_num_threads(n)

@@ -9,7 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from ..runtime.implementations import environment, installed
+from ...runtime.implementations import environment, installed
 
 #: The stages the side-by-side table shows (every row of these stages that all reports share).
 STAGES = ("projection", "binning+sort", "selection", "blend-forward", "blend-backward", "end-to-end", "fused",

@@ -12,8 +12,9 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
-from .data import SceneData
-from .loss import RaySettings, ViewSelections, rays_loss, step_rays
+from ...render import SelectionCache
+from ..scenes.folders import SceneData
+from .rays import RaySettings, rays_loss, step_rays
 
 
 class BaselineSettings(RaySettings, Protocol):
@@ -24,7 +25,7 @@ class BaselineSettings(RaySettings, Protocol):
 
 
 def fit_free_features(scene: SceneData, cfg: BaselineSettings, lr: float = 0.05, progress: bool = True,
-                      views: ViewSelections | None = None) -> np.ndarray:
+                      views: SelectionCache | None = None) -> np.ndarray:
     """Optimize free features of ``scene`` for ``cfg.steps`` steps (Adam at ``lr``; views, rays,
     sampler, K and temperature from ``cfg``). Returns unit features [N,C] float32.
 
@@ -36,7 +37,7 @@ def fit_free_features(scene: SceneData, cfg: BaselineSettings, lr: float = 0.05,
     table = torch.nn.Parameter(torch.randn(len(scene.gaussians), scene.feature_dim, generator=gen))
     table.grad = torch.zeros_like(table)
     opt = torch.optim.Adam([table], lr=lr, fused=True)
-    views = ViewSelections(1 << 30) if views is None else views
+    views = SelectionCache(1 << 30) if views is None else views
     bar = tqdm(range(cfg.steps), desc=f"baseline {scene.name}", unit="step", disable=not progress)
     for step in bar:
         rays = step_rays(scene, cfg, np.random.default_rng([cfg.seed, step, 0]), views)

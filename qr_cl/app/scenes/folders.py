@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..scene import Camera, Gaussians, SceneFormatError, load_cameras, load_ply, read_ply_vertices
+from ...scene import Camera, Gaussians, SceneFormatError, load_cameras, load_ply, read_ply_vertices
 
 
 class SceneDataError(SceneFormatError):

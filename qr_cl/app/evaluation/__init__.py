@@ -1,0 +1,1 @@
+"""Open-vocabulary 3D segmentation of Gaussians: ground truth, predictions, mIoU/mAcc, pictures."""

@@ -1,0 +1,80 @@
+"""The budget of a reproduction (:class:`Plan`, :data:`PLANS`: "full", "quick" and "smoke") and the
+training runs it compares (:class:`TrainingRun`: a renderer, its K, opacity noise and seed)."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+NOISE_K = 40                          # the noise table's Q-Render K (paper: "Sensitivity under Gaussian Perturbation")
+
+LABELS = {"volume": "V-Render", "quantile": "Q-Render", "topk": "top-K", "stratified": "Stratified-K"}
+
+
+@dataclass
+class Plan:
+    """The budget of one reproduction: rooms (``room``: SyntheticConfig overrides of the "3dgs"
+    style), training (same ``steps``, ``views`` and ``rays`` for every renderer), the K values and
+    noise scales, the sizes of the timing, profile and RGB measurements (pixels), and the flat
+    room compared with them (``flat_room``: overrides of the default flat room, the demo's)."""
+
+    train_rooms: int
+    steps: int
+    ks: tuple[int, ...]
+    stratified_ks: tuple[int, ...]
+    noise: tuple[float, ...]
+    room: dict = field(default_factory=dict)
+    views: int = 4
+    rays: int = 2048
+    timing_views: int = 2
+    timing_size: tuple[int, int] = (640, 480)
+    timing_rounds: int = 3
+    rgb_ks: tuple[int, ...] = (10, 20, 40)
+    rgb_views: int = 4
+    rgb_size: tuple[int, int] = (640, 480)
+    profile_k: int = 10
+    stats_views: int = 4
+    dense_gaussians: int = 300_000
+    flat_room: dict = field(default_factory=dict)
+
+
+PLANS = {
+    "full": Plan(train_rooms=4, steps=300, ks=(5, 10, 20, 40, 50), stratified_ks=(10, 40),
+                 noise=(0.0, 0.25, 0.5, 1.0, 2.0, 4.0), room={"n_gaussians": 60_000}),
+    "quick": Plan(train_rooms=2, steps=150, ks=(5, 10, 40), stratified_ks=(40,), noise=(0.0, 0.5, 2.0),
+                  room={"n_gaussians": 60_000}, timing_views=1, timing_size=(320, 240), timing_rounds=2,
+                  rgb_views=2, rgb_size=(320, 240), stats_views=2),
+    "smoke": Plan(train_rooms=1, steps=2, ks=(5,), stratified_ks=(5,), noise=(0.0, 1.0),
+                  room={"n_gaussians": 5000, "layers": 2.0, "n_objects": 3, "n_wall_objects": 1, "n_views": 4,
+                        "width": 80, "height": 60, "dim": 32, "points_per_gaussian": 8},
+                  views=2, rays=256, timing_views=1, timing_size=(64, 48), timing_rounds=1, rgb_ks=(10,),
+                  rgb_views=1, rgb_size=(64, 48), stats_views=1, dense_gaussians=5000,
+                  flat_room={"n_gaussians": 3000, "n_views": 1, "width": 64, "height": 48, "dim": 32}),
+}
+
+
+@dataclass(frozen=True)
+class TrainingRun:
+    """One training run of the comparison: the feature renderer it trains through (sampler name
+    and K, 0 for V-Render), the opacity-noise scale of the rooms it trains on, and the offset of
+    its training seed (a repeated run measures the run-to-run spread)."""
+
+    sampler: str
+    k: int = 0
+    noise: float = 0.0
+    seed: int = 0
+
+    @property
+    def label(self) -> str:
+        name = LABELS[self.sampler] + (f" K={self.k}" if self.k else "")
+        return name + (f", opacity noise {self.noise:g}" if self.noise else "") + (
+            f", seed +{self.seed}" if self.seed else "")
+
+
+def plan_runs(plan: Plan) -> list[TrainingRun]:
+    """Every training run of ``plan``: V-Render, top-K and Q-Render at each K, Stratified-K,
+    Q-Render K=40 at each noise scale (noise 0 is the clean Q-Render K=40 run, added if the K
+    values lack 40), and Q-Render K=40 again with the next seed (the run-to-run spread)."""
+    runs = [TrainingRun("volume")]
+    runs += [TrainingRun(s, k) for s in ("topk", "quantile") for k in plan.ks]
+    runs += [TrainingRun("stratified", k) for k in plan.stratified_ks]
+    runs += [TrainingRun("quantile", NOISE_K, s) for s in plan.noise if s or NOISE_K not in plan.ks]
+    return runs + [TrainingRun("quantile", NOISE_K, seed=1)]

@@ -1,0 +1,2 @@
+"""GS-Net training through a feature renderer: configuration, the network, the rays of a step and
+their selections, the contrastive loss, the training loop, and the per-scene baseline."""

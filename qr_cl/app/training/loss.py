@@ -1,0 +1,70 @@
+"""The contrastive distillation loss of the paper (Sec. 4.3, Eq. 2): rendered ray features scored
+against the unit features of their view's masks."""
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+from ...runtime import host_empty
+
+
+def contrastive_loss(rendered: torch.Tensor, target: torch.Tensor, mask_features: torch.Tensor,
+                     temperature: float = 0.1) -> torch.Tensor:
+    """Mean over rays of -log softmax_j(sim(f_ray, f_j) / temperature)[target].
+
+    rendered [P,C] rendered ray features (any norm; cosine similarity normalizes them),
+    target [P] int64 row of each ray's own mask in ``mask_features`` (the positive),
+    mask_features [M,C] unit features of all masks of the view (the others are the negatives).
+    Eq. 2 with the positive kept in the denominator (InfoNCE / cross-entropy form).
+    """
+    if rendered.ndim != 2 or mask_features.ndim != 2 or rendered.shape[1] != mask_features.shape[1]:
+        raise ValueError(f"rendered {tuple(rendered.shape)} and mask_features {tuple(mask_features.shape)} "
+                         "must be [P,C] and [M,C]")
+    (logits,) = cosine_logits(rendered, [rendered.shape[0]], [mask_features], temperature)
+    return F.cross_entropy(logits, target)
+
+
+def cosine_logits(rendered: torch.Tensor, sizes: list[int], mask_features: list[torch.Tensor],
+                  temperature: float) -> tuple[torch.Tensor, ...]:
+    """Logits of several views' rays at once: ``rendered`` [P,C] holds the views' rays one view
+    after the other (``sizes`` [V] rays per view, summing to P); view v's rays are scored against
+    its ``mask_features[v]`` [M_v,C]. Returns per view [P_v, M_v] = cos(ray, mask) / temperature,
+    i.e. ``F.normalize(rendered_v, dim=1) @ mask_features[v].T / temperature``. The backward
+    writes d rendered [P,C] into one pooled host array and allocates no other [P,C] array."""
+    if sum(sizes) != rendered.shape[0] or len(sizes) != len(mask_features):
+        raise ValueError(f"sizes {list(sizes)} must split the {rendered.shape[0]} rays among "
+                         f"{len(mask_features)} views")
+    return _CosineLogits.apply(rendered, float(temperature), tuple(int(n) for n in sizes), *mask_features)
+
+
+class _CosineLogits(torch.autograd.Function):
+    """:func:`cosine_logits`: logits_v = (r_v @ M_v^T) * inv_v / T with inv = 1 / max(|r|, 1e-12)
+    (F.normalize's clamp); d r_v = s_v @ M_v - (sum_m s_v * (r_v @ M_v^T)) inv_v^2 r_v with
+    s_v = g_v inv_v / T (no second term where the norm was clamped)."""
+
+    @staticmethod
+    def forward(ctx, rendered: torch.Tensor, temperature: float, sizes: tuple[int, ...], *masks: torch.Tensor):
+        rendered = rendered.contiguous()
+        norm = torch.linalg.vector_norm(rendered, dim=1, keepdim=True)
+        inv = norm.clamp_min(1e-12).reciprocal_()
+        sims = [r @ m.T for r, m in zip(torch.split(rendered, sizes), masks)]
+        ctx.save_for_backward(rendered, inv, (norm > 1e-12).to(rendered.dtype), *sims, *masks)
+        ctx.temperature, ctx.sizes = temperature, sizes
+        return tuple(sim * i / temperature for sim, i in zip(sims, torch.split(inv, sizes)))
+
+    @staticmethod
+    def backward(ctx, *grads: torch.Tensor):
+        rendered, inv, unclamped, *rest = ctx.saved_tensors
+        n = len(ctx.sizes)
+        sims, masks = rest[:n], rest[n:]
+        d = torch.from_numpy(host_empty(tuple(rendered.shape))) if rendered.dtype == torch.float32 else \
+            torch.empty_like(rendered)
+        for g, sim, m, r, i, u, out in zip(grads, sims, masks, *(torch.split(t, ctx.sizes) for t in
+                                                                (rendered, inv, unclamped, d))):
+            if g is None:
+                out.zero_()
+                continue
+            scaled = g * i / ctx.temperature
+            torch.mm(scaled, m, out=out)
+            out.addcmul_(r, (scaled * sim).sum(1, keepdim=True) * i * i * u, value=-1)
+        return (d, None, None) + (None,) * n

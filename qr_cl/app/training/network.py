@@ -1,0 +1,37 @@
+"""GS-Net as the application builds it: the UNet presets, the network, and its features of a scene
+from a training checkpoint.
+
+The network takes a scene's Gaussians as they are (``net.prepare([scene.gaussians])``)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from qr_cl.backbone import GSNet, VoxelConfig, minkunet14
+from ..scenes.folders import SceneData
+
+#: UNet presets: name -> overrides of backbone.minkunet14 (empty = MinkUNet14 itself).
+NETS: dict[str, dict] = {
+    "tiny": dict(stem_channels=8, stem_kernel=3, enc_channels=(8, 16, 16, 16), dec_channels=(16, 16, 16, 16)),
+    "small": dict(stem_channels=16, enc_channels=(16, 32, 64, 64), dec_channels=(64, 64, 48, 48)),
+    "mink14": {},
+}
+
+
+def build_net(net: str, feature_dim: int, grid_size: float):
+    """A GSNet with the UNet preset ``net`` (see :data:`NETS`) predicting ``feature_dim``-D features."""
+    voxels = VoxelConfig(grid_size=grid_size)
+    return GSNet(feature_dim, voxels, minkunet14(voxels.num_features, **NETS[net]))
+
+
+def network_features(checkpoint: Path | dict, scene: SceneData) -> np.ndarray:
+    """GS-Net features [N,C] (eval mode) of ``scene`` from a training checkpoint."""
+    ckpt = torch.load(checkpoint, weights_only=False) if not isinstance(checkpoint, dict) else checkpoint
+    cfg = ckpt["config"]
+    net = build_net(cfg["net"], cfg["feature_dim"], cfg["grid_size"])
+    net.load_state_dict(ckpt["model"])
+    net.eval()
+    with torch.no_grad():
+        return net(net.prepare([scene.gaussians])).numpy()
