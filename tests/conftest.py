@@ -11,7 +11,7 @@ import pytest
 import qr_cl
 from qr_cl.app.process import torch_threads
 from qr_cl.scene import load_layout_instance
-from synthetic_helpers import tiny_scene
+from tests.synthetic_helpers import tiny_scene
 
 
 def _load(path: Path):

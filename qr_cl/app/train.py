@@ -84,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
         # destroy a finished all_reduce's work, and with it the last references to the gradients,
         # after the caller's wait returns; when that ran into finalization, which ends threads
         # asking for the GIL, the rank aborted now and then ("terminate called without an active
-        # exception" in tests/test_distributed.py; a barrier before the exit only made it rarer).
+        # exception" in tests/app/test_train_distributed.py; a barrier before the exit only made it rarer).
         sys.stdout.flush()
         sys.stderr.flush()
         os._exit(0)

@@ -6,7 +6,7 @@ may have none (Intel's CPU runtime answers KERNEL_ARG_INFO_NOT_AVAILABLE). The l
 arguments by name, so it takes the names and types from the source, preprocessed with the same
 ``-D`` defines as the build: object-like macros, ``#if``/``#ifdef``/``#ifndef``/``#elif``/
 ``#else``/``#endif``. Function-like macros are never expanded (a signature that needs one is
-refused by name); ``tests/test_signatures.py`` checks every kernel against the driver's
+refused by name); ``tests/runtime/test_signatures.py`` checks every kernel against the driver's
 own answer on PoCL.
 """
 from __future__ import annotations

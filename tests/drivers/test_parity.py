@@ -13,7 +13,7 @@ with a message that names what failed (rusticl 22.3: the loop limit). With the s
 a refused implementation must still never crash. The kernel-against-twin tests run on Intel's
 runtime too. Skipped for implementations not installed.
 
-Run as a script (``python tests/test_parity.py OUT.npz SCENE...``) this file is the child.
+Run as a script (``python tests/drivers/test_parity.py OUT.npz SCENE...``) this file is the child.
 """
 from __future__ import annotations
 
@@ -191,18 +191,20 @@ def test_intel_equals_pocl_on_the_dense_room(shape, reference, tmp_path):
     check_equal_first_and_cached("intel", shape, ["dense"], reference, tmp_path)
 
 
-#: The kernel-against-twin test modules that also run on the other implementations.
-KERNEL_TESTS = ["test_blend.py", "test_samplers.py", "test_raster.py", "test_rasterization.py", "test_signatures.py"]
+#: The kernel-against-twin test modules that also run on the other implementations (paths under tests/).
+KERNEL_TESTS = ["stages/test_project.py", "stages/test_binning.py", "stages/test_select.py", "stages/test_transpose.py",
+                "stages/test_blend.py", "stages/test_sh.py", "stages/test_vrender.py", "render/test_rasterize.py",
+                "render/test_rasterization.py", "runtime/test_signatures.py"]
 
 
 def test_kernel_tests_pass_on_intel(tmp_path, data_dir):
     needs("intel")
     env = environment("intel", XDG_CACHE_HOME=str(tmp_path / "xdg"), QR_CL_CACHE=str(tmp_path / "qr-cl"),
                       QR_CL_DATA=str(data_dir))
-    here = Path(__file__).resolve().parent
+    tests = Path(__file__).resolve().parents[1]
     run = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
-                          *(str(here / t) for t in KERNEL_TESTS)], env=env, capture_output=True, text=True,
-                         timeout=900, cwd=here.parent)
+                          *(str(tests / t) for t in KERNEL_TESTS)], env=env, capture_output=True, text=True,
+                         timeout=900, cwd=tests.parent)
     assert run.returncode == 0, run.stdout[-4000:]
 
 

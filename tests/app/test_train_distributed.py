@@ -12,9 +12,9 @@ import torch
 from qr_cl.app.process import torch_threads
 from qr_cl.app.training.config import TrainConfig
 from qr_cl.app.training.trainer import Trainer, train
-from synthetic_helpers import tiny_scene
+from tests.synthetic_helpers import tiny_scene
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def test_two_ranks_match_gradient_accumulation(tmp_path):

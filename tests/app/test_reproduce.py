@@ -20,7 +20,7 @@ from qr_cl.app.experiments.transmittance import profile_gaps
 from qr_cl.app.scenes.folders import load_scene_folder
 from qr_cl.app.scenes.room_config import SyntheticConfig
 from qr_cl.app.scenes.synthetic import room_folder
-from synthetic_helpers import tiny_config
+from tests.synthetic_helpers import tiny_config
 
 SPLAT_ROOM = dict(style="3dgs", n_gaussians=5000, layers=2.0, n_objects=3, n_wall_objects=1, n_views=3, width=80,
                   height=60, dim=32)

@@ -8,7 +8,7 @@ import pytest
 from qr_cl.render import rasterize_plan
 from qr_cl.runtime import channel_layout, memory, padded_rows, shared_array
 from qr_cl.stages import blend as blend_stage
-from qr_cl.stages import blend_backward, blend_forward, blend_ref, render_fused, select, transpose
+from qr_cl.stages import blend_backward, blend_forward, blend_ref, render_fused, select
 
 RTOL = 1e-5
 
@@ -123,24 +123,6 @@ def test_owner_bounds_split_the_entries_evenly(plan, monkeypatch):
         worst_bin = np.bincount(ids >> shift).max()
         assert per_owner.sum() == len(ids)
         assert np.abs(per_owner - len(ids) / owners).max() <= worst_bin
-
-
-def test_transpose_groups_entries_by_gaussian(plan):
-    sel = select(plan, "quantile", 6)
-    cursor, t_ray, t_w, t_entry, chunks = transpose(sel)
-    ends = cursor.get()[chunks - 1::chunks]
-    h = sel.host()
-    counts = np.bincount(h["ids"][h["ids"] >= 0], minlength=sel.n_gaussians)
-    np.testing.assert_array_equal(np.diff(ends, prepend=0), counts)
-    rays = t_ray.get()[:ends[-1]]
-    for g in np.flatnonzero(counts)[:50]:     # ordered by ray within a Gaussian
-        seg = rays[(ends[g - 1] if g else 0):ends[g]]
-        assert (np.diff(seg) >= 0).all()
-    entry = t_entry.get()[:ends[-1]]                  # each transposed entry's selection index
-    owner = np.repeat(np.arange(sel.n_gaussians), counts)
-    np.testing.assert_array_equal(sel.ids.get()[entry], owner)
-    np.testing.assert_array_equal(sel.weights.get()[entry], t_w.get()[:ends[-1]])
-    np.testing.assert_array_equal(entry // 6, rays)   # quantile rows of K = 6 slots
 
 
 def test_volume_selection_blend_equals_fused(plan):

@@ -10,7 +10,7 @@ import pytest
 from qr_cl.app.evaluation.metrics import NYU40_NAMES
 from qr_cl.app.scenes.folders import load_scene_folder
 from qr_cl.app.scenes.synthetic import room_folder
-from synthetic_helpers import tiny_config
+from tests.synthetic_helpers import tiny_config
 
 
 @pytest.fixture(scope="module")

@@ -25,7 +25,7 @@ sort's) and about pyopencl's probing of vendor-specific device queries (clGetDev
 CL_INVALID_VALUE) are printed, not failed on. Skipped when oclgrind's ICD library is not installed
 (Debian/Ubuntu: ``apt-get install oclgrind``).
 
-Run as a script (``python tests/test_oclgrind.py races|uninitialized``) this file is the child.
+Run as a script (``python tests/drivers/test_oclgrind.py races|uninitialized``) this file is the child.
 """
 from __future__ import annotations
 
@@ -43,7 +43,7 @@ ICD_LIBRARIES = ("/usr/lib/oclgrind/liboclgrind-rt-icd.so",                 # De
                  "/usr/lib/x86_64-linux-gnu/liboclgrind-rt-icd.so",
                  "/usr/lib64/oclgrind/liboclgrind-rt-icd.so",
                  "/usr/local/lib/liboclgrind-rt-icd.so")
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 W, H = 24, 16
 MODES = {
     "races": {"OCLGRIND_CHECK_API": "1", "OCLGRIND_DATA_RACES": "1"},

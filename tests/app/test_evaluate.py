@@ -15,7 +15,7 @@ from qr_cl.app.scenes.synthetic import class_prototypes
 from qr_cl.app.training.rays import view_plan
 from qr_cl.scene import Gaussians
 from qr_cl.stages import select
-from synthetic_helpers import tiny_config, tiny_scene
+from tests.synthetic_helpers import tiny_config, tiny_scene
 
 
 def test_known_iou_and_acc():

@@ -6,7 +6,7 @@ held a float's bits (1.0 = 1065353216 entries), and transpose_count walked into 
 Here a child process corrupts a selection that way (and with ids outside the scene) and runs every
 consumer on both launch shapes; a crash is the child's death, so it runs apart from pytest.
 
-Run as a script (``python tests/test_driver_faults.py``) this file is the child.
+Run as a script (``python tests/drivers/test_driver_faults.py``) this file is the child.
 """
 from __future__ import annotations
 

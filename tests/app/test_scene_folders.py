@@ -9,7 +9,7 @@ import pytest
 
 from qr_cl.app.scenes.folders import SceneDataError, load_scene_folder, read_labelled_points
 from qr_cl.app.scenes.synthetic import room_folder, write_labelled_points
-from synthetic_helpers import tiny_config
+from tests.synthetic_helpers import tiny_config
 
 
 @pytest.fixture(scope="module")

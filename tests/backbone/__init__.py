@@ -1,0 +1,1 @@
+"""Tests of qr_cl.backbone (backbone/): sparse tensors, convolutions, voxelization, GSNet."""

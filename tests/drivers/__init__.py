@@ -1,0 +1,1 @@
+"""Every OpenCL implementation install.sh installs (parity with PoCL), oclgrind, and drivers' wrong answers."""

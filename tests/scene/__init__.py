@@ -1,0 +1,1 @@
+"""Tests of qr_cl.scene: scene files and cameras."""
