@@ -76,6 +76,8 @@ def run(args: argparse.Namespace) -> int:
     if args.device:
         os.environ["QR_CL_DEVICE"] = args.device
     out = Path(args.out)
+    if args.data and not Path(args.data).is_dir():
+        raise FileNotFoundError(2, "no such folder (--data)", args.data)
     watch = Stopwatch()
     mode = "smoke" if args.smoke else "quick" if args.quick else "full"
     if args.implementations:

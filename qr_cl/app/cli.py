@@ -11,10 +11,11 @@ from tqdm import tqdm
 
 from ..render import render_volume_fused
 from ..render.selfcheck import check_in_child
-from ..runtime import NoDeviceError, choose_device, list_devices, trial_run
+from ..runtime import BufferLimitError, NoDeviceError, choose_device, list_devices, trial_run
 from ..runtime.device import implementation, self_check_enabled
 from ..scene import SceneFormatError, load_cameras, load_layout_instance, load_scene, orbit_cameras
 from .images import save_alpha, save_depth, save_rgb
+from .training.network import CheckpointError
 from .timing import Stopwatch
 
 
@@ -114,8 +115,12 @@ def main(argv: list[str] | None = None) -> int:
         warnings.formatwarning = lambda msg, cat, *a, **k: f"warning: {msg}\n"
         try:
             return commands[args.command](args)
-        except (SceneFormatError, NoDeviceError) as exc:
+        except (SceneFormatError, NoDeviceError, CheckpointError, BufferLimitError) as exc:
             print(f"qr-cl: error: {exc}", file=sys.stderr)
+            return 2
+        except (FileNotFoundError, IsADirectoryError, NotADirectoryError, PermissionError) as exc:
+            print(f"qr-cl: error: {exc.filename or ''}: {exc.strerror or exc}" if exc.filename
+                  else f"qr-cl: error: {exc}", file=sys.stderr)
             return 2
 
 

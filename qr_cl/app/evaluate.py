@@ -13,7 +13,6 @@ import json
 from pathlib import Path
 
 import numpy as np
-import torch
 from tqdm import tqdm
 
 from .evaluation.labels import ground_truth
@@ -21,7 +20,7 @@ from .evaluation.scoring import evaluate_features, markdown_table
 from .evaluation.visuals import write_visuals
 from .process import torch_threads
 from .scenes.folders import load_scene_folder
-from .training.network import network_features
+from .training.network import load_checkpoint, network_features
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -46,7 +45,9 @@ def run(args: argparse.Namespace) -> int:
         raise SystemExit("qr-cl eval: --features evaluates exactly one scene")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    ckpt = torch.load(args.checkpoint, weights_only=False) if args.checkpoint else None
+    ckpt = load_checkpoint(args.checkpoint) if args.checkpoint else None
+    if args.features and not Path(args.features).is_file():
+        raise FileNotFoundError(2, "no such features file (--features)", args.features)
     rows = []
     for path in tqdm(args.scenes, desc="eval", unit="scene"):
         scene = load_scene_folder(path, args.level)

@@ -107,6 +107,8 @@ def run(args: argparse.Namespace) -> int:
     keep_freed_memory()
     mode = "smoke" if args.smoke else "quick" if args.quick else "full"
     out = Path(args.out)
+    if args.data and not Path(args.data).is_dir():
+        raise FileNotFoundError(2, "no such folder (--data)", args.data)
     results = run_reproduction(PLANS[mode], mode, out, Path(args.cache) if args.cache else None,
                                Path(args.data) if args.data else None, args.seed)
     for c in results["claims"]:

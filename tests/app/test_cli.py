@@ -46,3 +46,21 @@ def test_donut_renders_recognizably(shared_data, tmp_path):
     assert abs(xs.mean() - 240) < 40 and abs(ys.mean() - 135) < 60
     pink = (rgb[..., 0] > 0.7) & (rgb[..., 2] > 0.6) & (rgb[..., 1] < 0.75)  # frosting
     assert pink.sum() > 0.05 * len(xs)
+
+
+def test_bad_input_gets_a_message_not_a_traceback(tmp_path, capsys):
+    """As a new user would meet them: a missing or foreign checkpoint, a missing --data folder or
+    report: exit 2 and one line naming the file and what is wrong."""
+    garbage = tmp_path / "garbage.pt"
+    garbage.write_text("not a checkpoint")
+    cases = [(["eval", str(tmp_path), "--checkpoint", str(tmp_path / "none.pt"), "--out", str(tmp_path / "e")],
+              "none.pt: no such checkpoint file"),
+             (["eval", str(tmp_path), "--checkpoint", str(garbage), "--out", str(tmp_path / "e")],
+              "garbage.pt: not a torch checkpoint"),
+             (["reproduce", "--quick", "--data", str(tmp_path / "nodata"), "--out", str(tmp_path / "r")],
+              "nodata: no such folder (--data)"),
+             (["bench", "--compare", str(tmp_path / "a.json"), str(tmp_path / "b.json")], "a.json: No such file")]
+    for argv, message in cases:
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert err.startswith("qr-cl: error: ") and message in err and "Traceback" not in err, (argv, err)

@@ -26,9 +26,34 @@ def build_net(net: str, feature_dim: int, grid_size: float):
     return GSNet(feature_dim, voxels, minkunet14(voxels.num_features, **NETS[net]))
 
 
+class CheckpointError(ValueError):
+    """A file that is not a usable qr-cl training checkpoint; the message names the file and why."""
+
+
+#: What every training checkpoint holds.
+CHECKPOINT_KEYS = ("config", "model")
+
+
+def load_checkpoint(path: Path | str) -> dict:
+    """The training checkpoint at ``path`` (a dict with :data:`CHECKPOINT_KEYS`); CheckpointError
+    naming the file when it is missing, unreadable or not a qr-cl checkpoint."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"{path}: no such checkpoint file")
+    try:
+        ckpt = torch.load(path, weights_only=False)
+    except Exception as exc:                            # torch raises many kinds for a foreign file
+        raise CheckpointError(f"{path}: not a torch checkpoint ({type(exc).__name__}: {exc})") from exc
+    missing = [k for k in CHECKPOINT_KEYS if not isinstance(ckpt, dict) or k not in ckpt]
+    if missing:
+        raise CheckpointError(f"{path}: not a qr-cl training checkpoint (no {', '.join(missing)})")
+    return ckpt
+
+
 def network_features(checkpoint: Path | dict, scene: SceneData) -> np.ndarray:
-    """GS-Net features [N,C] (eval mode) of ``scene`` from a training checkpoint."""
-    ckpt = torch.load(checkpoint, weights_only=False) if not isinstance(checkpoint, dict) else checkpoint
+    """GS-Net features [N,C] (eval mode) of ``scene`` from a training checkpoint (a path, or the
+    dict :func:`load_checkpoint` returns)."""
+    ckpt = checkpoint if isinstance(checkpoint, dict) else load_checkpoint(checkpoint)
     cfg = ckpt["config"]
     net = build_net(cfg["net"], cfg["feature_dim"], cfg["grid_size"])
     net.load_state_dict(ckpt["model"])

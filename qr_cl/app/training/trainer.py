@@ -53,7 +53,7 @@ from ..process import process_cores
 from ..scenes.folders import load_scene_folder
 from ..timing import Stopwatch
 from .config import TrainConfig
-from .network import build_net
+from .network import build_net, load_checkpoint
 from .rays import StepRays, rays_loss, step_rays
 
 
@@ -212,7 +212,7 @@ def train(cfg: TrainConfig, resume: bool = False, rank: int = 0, world: int = 1,
     trainer = Trainer(cfg, rank, world)
     path = Path(cfg.out) / "checkpoint.pt"
     if resume and path.is_file():
-        trainer.load(torch.load(path, weights_only=False))
+        trainer.load(load_checkpoint(path))
     previous = signal.signal(signal.SIGTERM, signal.default_int_handler) if rank == 0 else None
     bar = tqdm(total=cfg.steps, initial=trainer.step, desc=f"train {cfg.sampler}", unit="step",
                disable=not progress or rank != 0)
