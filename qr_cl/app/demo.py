@@ -3,7 +3,8 @@
 1. Generates (or reuses from the cache) ``--train-scenes`` training rooms and one held-out room
    (:mod:`qr_cl.app.scenes.synthetic`, "3dgs" style by default: semi-transparent shells, anisotropic
    Gaussians and floaters, where a ray blends about 90 Gaussians; their "CLIP" features are
-   simulated).
+   simulated around the real CLIP text embeddings of the class names, ``--features orthogonal``
+   for random class prototypes).
 2. Trains GS-Net through Q-Render (K=40) on the training rooms; the first ``--short-steps`` of
    that run double as the Q-Render K=40 entry of the renderer comparison.
 3. Short runs of the same budget with Q-Render K=5, top-K K=5 and K=40, and V-Render.
@@ -26,11 +27,12 @@ import numpy as np
 
 from .evaluation.labels import ground_truth, reached_gaussians
 from .evaluation.scoring import evaluate_features, markdown_table
-from .evaluation.visuals import write_visuals
+from .evaluation.visuals import PANEL_SIZE, write_visuals
 from .process import cap_kernel_threads, keep_freed_memory, torch_threads
 from .scenes.folders import load_scene_folder
-from .scenes.room_config import STYLES, SyntheticConfig
+from .scenes.room_config import FEATURE_FIELDS, STYLES, SyntheticConfig
 from .scenes.synthetic import room_folder
+from .scenes.views import room_overview_cameras
 from .timing import Stopwatch
 from .training.baseline import fit_free_features
 from .training.config import TrainConfig
@@ -52,6 +54,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--style", choices=STYLES, default="3dgs",
                         help="3DGS-like rooms: semi-transparent shells of anisotropic Gaussians and floaters "
                              "(default), or the flat opaque rooms of earlier releases (qr_cl/app/scenes/synthetic.py)")
+    parser.add_argument("--features", choices=tuple(FEATURE_FIELDS), default="clip",
+                        help="simulated CLIP features around the real CLIP text embeddings of the class names "
+                             "(default), or random nearly orthogonal class prototypes (earlier releases)")
     parser.add_argument("--gaussians", type=int,
                         help="Gaussians per room (default: " + ", ".join(f"{n} for {s} rooms" for s, n in
                                                                         ROOM_GAUSSIANS.items()) + ")")
@@ -82,8 +87,10 @@ def run(args: argparse.Namespace) -> int:
     seeds = list(range(args.seed, args.seed + args.train_scenes))
     held_seed = args.seed + 1000
     n_gaussians = args.gaussians or ROOM_GAUSSIANS[args.style]
-    paths = [room_folder(SyntheticConfig(seed=s, n_gaussians=n_gaussians, style=args.style), cache)
+    paths = [room_folder(SyntheticConfig(seed=s, n_gaussians=n_gaussians, style=args.style,
+                                         features=args.features), cache)
              for s in seeds + [held_seed]]
+    mask_accuracy = [json.loads((p / "synthetic.json").read_text())["mask_accuracy19"] for p in paths]
     train_paths, held_path = [str(p) for p in paths[:-1]], str(paths[-1])
     print(f"scenes: {len(train_paths)} training rooms + 1 held-out room ({n_gaussians} Gaussians each, "
           f"{args.style} style) in {paths[0].parent} ({wall_clock.seconds:.0f} s)")
@@ -125,22 +132,27 @@ def run(args: argparse.Namespace) -> int:
         score("per-scene baseline", "Q-Render K=40", args.steps, lambda s: baseline[s.name])
         images = []
         for split, scene in eval_scenes.items():
-            images += write_visuals(scene, network_features(main_state, scene), gts[split],
-                                    out / "images" / "gsnet", views=(0, 1))
-            images += write_visuals(scene, baseline[scene.name], gts[split], out / "images" / "baseline", views=(0, 1))
+            cams = room_overview_cameras(scene.gaussians, *PANEL_SIZE)
+            images += write_visuals(scene, network_features(main_state, scene), gts[split], out / "images" / "gsnet", cams)
+            images += write_visuals(scene, baseline[scene.name], gts[split], out / "images" / "baseline", cams)
 
     wall = wall_clock.seconds
     table = markdown_table(rows)
     short = {label: {r["split"]: r for r in rows if r["method"] == f"GS-Net / {label} / {args.short_steps} steps"}
              for _, _, label in COMPARED}
     (out / "results.json").write_text(json.dumps({"rows": rows, "timings_s": timings, "wall_s": wall,
-                                                  "args": vars(args)}, indent=1, default=str))
+                                                  "mask_accuracy19": mask_accuracy, "args": vars(args)},
+                                                 indent=1, default=str))
     pngs = [p for p in images if p.suffix == ".png"]
     report = ["# qr-cl demo", "",
               f"GS-Net (small sparse UNet) trained on {len(train_paths)} synthetic rooms; evaluated on a held-out "
               f"room ({Path(held_path).name}) and a training room ({Path(train_paths[0]).name}). The \"CLIP\" "
-              "features are simulated (class prototypes plus noise; see qr_cl/app/scenes/synthetic.py). mIoU/mAcc in % "
-              f"over the classes present, ground truth {truth_text}.", "", table, "",
+              "features are simulated" + (" around the real CLIP ViT-B/32 text embeddings of the class names (a mask's "
+              "feature names its own class among the 19 evaluated ones for "
+              f"{100 * min(mask_accuracy):.0f}-{100 * max(mask_accuracy):.0f} % of the masks of these rooms; "
+              "CLIP on object crops: about 60-75 %)" if args.features == "clip" else
+              " from random, nearly orthogonal class prototypes") + "; see qr_cl/app/scenes/room_features.py. "
+              f"mIoU/mAcc in % over the classes present, ground truth {truth_text}.", "", table, "",
               f"## Renderers compared ({args.short_steps} steps of {args.views} views x {args.rays} rays each)", "",
               "The same network, budget and seed through each renderer (the Q-Render K=40 run is the first "
               f"{args.short_steps} steps of the main run). One seed per run: differences of a point or two are "
@@ -159,8 +171,9 @@ def run(args: argparse.Namespace) -> int:
                if r["method"].endswith(f"/ {args.steps} steps")]
     report += ["", "## Wall times", "", "| run | s |", "| --- | ---: |"]
     report += [f"| {k} | {v:.1f} |" for k, v in timings.items()] + [f"| whole demo | {wall:.1f} |", "", "## Images",
-               "", "Each picture: RGB | PCA of the rendered features | predicted classes | ground truth "
-               "(labelled Gaussians only); colours in images/*/legend.md.", ""]
+               "", "Each picture, from above a corner of the room: RGB | PCA of the Q-Render feature image | predicted "
+               "classes | ground truth (labelled Gaussians only) | cosine of the feature image to one class's text "
+               "feature (stretched); colours also in images/*/legend.md.", ""]
     report += [f"![{p.stem}]({p.relative_to(out)})" for p in pngs]
     (out / "report.md").write_text("\n".join(report) + "\n")
     print(table)

@@ -17,7 +17,7 @@ from tqdm import tqdm
 
 from .evaluation.labels import ground_truth
 from .evaluation.scoring import evaluate_features, markdown_table
-from .evaluation.visuals import write_visuals
+from .evaluation.visuals import frame_cameras, write_visuals
 from .process import torch_threads
 from .scenes.folders import load_scene_folder
 from .training.network import load_checkpoint, network_features
@@ -35,6 +35,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--knn", type=int, default=5, help="App. B neighbours (default 5)")
     parser.add_argument("--max-mahalanobis", type=float, default=0.1, help="App. B distance cut (default 0.1)")
     parser.add_argument("--views", type=int, nargs="*", default=[0], help="frames to render images of (default 0)")
+    parser.add_argument("--query", help="class name whose relevancy the images show (default: the most "
+                                        "common labelled class other than wall and floor)")
     parser.add_argument("--level", type=int, default=0, help="LangSplat mask level (default 0)")
 
 
@@ -56,7 +58,7 @@ def run(args: argparse.Namespace) -> int:
         gt, source = ground_truth(scene, args.gt, args.knn, args.max_mahalanobis)
         metrics = evaluate_features(scene, feats, gt)
         with torch_threads(1):
-            write_visuals(scene, feats, gt, out / "images", args.views)
+            write_visuals(scene, feats, gt, out / "images", frame_cameras(scene, args.views), args.query)
         rows.append({"method": "GS-Net" if ckpt is not None else Path(args.features).name, "scene": scene.name,
                      "split": "-", "gt": source, "metrics": metrics})
     means = {s: {k: float(np.nanmean([r["metrics"][s][k] for r in rows])) for k in ("miou", "macc")}

@@ -6,28 +6,31 @@
    by their opacity histograms and V-Render entries per pixel (Gaussians blended per ray).
 2. GS-Net trained on the training rooms with the same budget through every renderer of the plan
    (V-Render, top-K and Q-Render over K, Stratified-K), and through Q-Render K=40 on rooms whose
-   opacity logits carry Gaussian noise, and Q-Render K=40 again with the next seed (the run-to-run
-   spread); held-out mIoU/mAcc (19/15/10 classes), over all labelled Gaussians and over those the
-   room's views reach. The per-scene baseline (free features fitted on the held-out room itself,
-   the same budget) is scored the same way (Table 1: GS-Net against per-scene optimization).
+   opacity logits carry Gaussian noise, each with ``plan.seeds`` seeds; held-out mIoU/mAcc
+   (19/15/10 classes), over all labelled Gaussians and over those the room's views reach. The
+   per-scene baseline (free features fitted on the held-out room itself, the same budget, the
+   same seeds) is scored the same way (Table 1: GS-Net against per-scene optimization). The main
+   run (Q-Render K=40, first seed): per-class IoU, confusion matrix and pictures.
 3. The rendering time of every renderer on the held-out room (512-D features, whole images).
 4. The transmittance profiles along sample rays (Fig. 3) and their mean gap to V-Render's, and
    each renderer's feature image compared with V-Render's (cosine similarity).
 5. RGB fidelity: PSNR of Q-Render against V-Render from SH colours: the raw normalized
    Q-Render image, Q-Render's colour times V-Render's alpha and times its own alpha (and top-K's
    colour times V-Render's alpha), with pictures.
-6. ``report.md`` (tables, the paper's claims checked against the numbers), ``results.json`` and
-   the plots, in ``--out``.
+6. ``report.md`` (tables with mean and spread over the seeds, the paper's claims judged by them:
+   reproduced, not reproduced or undecided; :mod:`qr_cl.app.experiments.claims`),
+   ``results.json`` and the plots, in ``--out``.
 
 One module per study in :mod:`qr_cl.app.experiments`; this module runs them in turn.
 
-Plans (:data:`PLANS`): "full" (about 15 minutes on 2 cores), "quick"
-(``--quick``, 5 minutes: fewer K values, noise levels and steps, 2 training rooms) and "smoke"
-(``--smoke``, seconds on tiny rooms: checks the wiring, its numbers mean nothing).
+Plans (:data:`PLANS`): "full", "quick" (``--quick``: fewer K values, noise levels and steps, 2
+training rooms) and "smoke" (``--smoke``, seconds on tiny rooms: checks the wiring, its numbers
+mean nothing); the report states each one's wall time.
 """
 from __future__ import annotations
 
 import argparse
+import json
 import os
 from dataclasses import asdict
 from pathlib import Path
@@ -37,32 +40,35 @@ from tqdm import tqdm
 from ..runtime import runtime
 from .evaluation.labels import ground_truth, reached_gaussians
 from .experiments.agreement import feature_agreement
-from .experiments.claims import paper_claims, verdict
+from .experiments.claims import paper_claims
 from .experiments.plan import NOISE_K, PLANS, Plan, plan_runs
 from .experiments.render_times import render_times
 from .experiments.report import write_report
 from .experiments.rgb import rgb_study
 from .experiments.rooms import splat_rooms
 from .experiments.scene_statistics import compare_scenes
+from .experiments.segmentation import segmentation_study
 from .experiments.training_runs import baseline_scores, train_and_evaluate
 from .experiments.transmittance import transmittance_study
 from .process import cap_kernel_threads, keep_freed_memory, torch_threads
 from .scenes.folders import load_scene_folder
-from .scenes.room_config import SyntheticConfig
+from .scenes.room_config import FEATURE_FIELDS, SyntheticConfig
 from .scenes.synthetic import room_folder
 from .timing import Stopwatch
 from .training.network import network_features
 
 
-def run_reproduction(plan: Plan, mode: str, out: Path, cache: Path | None, data: Path | None, seed: int) -> dict:
-    """Run every experiment of ``plan`` (module docstring), write the report into ``out`` and
-    return the results."""
+def run_reproduction(plan: Plan, mode: str, out: Path, cache: Path | None, data: Path | None, seed: int,
+                     features: str = "clip") -> dict:
+    """Run every experiment of ``plan`` (module docstring) on rooms of the feature model
+    ``features``, write the report into ``out`` and return the results."""
     watch = Stopwatch()
     out.mkdir(parents=True, exist_ok=True)
-    train_paths, held_path = splat_rooms(plan, seed, cache)
+    train_paths, held_path = splat_rooms(plan, seed, cache, features)
     held = load_scene_folder(held_path)
     gt, _ = ground_truth(held)
-    flat = load_scene_folder(room_folder(SyntheticConfig(seed=seed + 1000, **plan.flat_room), cache))
+    flat = load_scene_folder(room_folder(SyntheticConfig(seed=seed + 1000, features=features, **plan.flat_room),
+                                         cache))
     statistics = compare_scenes(plan, held, flat, data, seed)
     reached = reached_gaussians(held, "quantile", NOISE_K)
     runs = plan_runs(plan)
@@ -70,15 +76,23 @@ def run_reproduction(plan: Plan, mode: str, out: Path, cache: Path | None, data:
     with torch_threads(1):
         for run in tqdm(runs, desc="renderers", unit="run"):
             rows.append(train_and_evaluate(plan, run, train_paths, held, gt, reached, out, seed))
-        baseline = baseline_scores(plan, held, gt, reached, out, seed)
-        features = network_features(Path(rows[0]["checkpoint"]), held)      # timed renders: V-Render's GS-Net
-    timed = [r for r in runs if not r.noise]
-    results = {"mode": mode, "plan": asdict(plan), "seed": seed, "device": runtime().device.name.strip(),
+        baseline = [baseline_scores(plan, held, gt, reached, out, seed + s) for s in range(plan.seeds)]
+        main = next(r for r in rows if (r["sampler"], r["k"], r["noise"], r["seed"]) == ("quantile", NOISE_K, 0.0, 0))
+        segmentation = segmentation_study(held, network_features(Path(main["checkpoint"]), held), gt, out,
+                                          f"GS-Net {main['label']}, seed {seed}")
+        volume = next(r for r in rows if r["sampler"] == "volume")
+        timed_features = network_features(Path(volume["checkpoint"]), held)      # timed renders: V-Render's GS-Net
+    timed = [r for r in runs if not r.noise and not r.seed]
+    mask_accuracy = {p.name: json.loads((p / "synthetic.json").read_text())["mask_accuracy19"]
+                     for p in [*train_paths, held.root]}
+    results = {"mode": mode, "plan": asdict(plan), "seed": seed, "features": features,
+               "device": runtime().device.name.strip(), "mask_accuracy19": mask_accuracy,
                "scenes": {"train": [p.name for p in train_paths], "held_out": held.name},
                "statistics": statistics, "runs": rows, "baseline": baseline,
                "reached": {"gaussians": int((reached & (gt >= 0)).sum()), "labelled": int((gt >= 0).sum())},
-               "render_ms": render_times(plan, held, features, timed),
-               "agreement": feature_agreement(plan, held, features, timed),
+               "segmentation": segmentation,
+               "render_ms": render_times(plan, held, timed_features, timed),
+               "agreement": feature_agreement(plan, held, timed_features, timed),
                "profiles": transmittance_study(plan, held, out, seed),
                "rgb": rgb_study(plan, held, data, out)}
     results["claims"] = paper_claims(results)
@@ -90,8 +104,11 @@ def run_reproduction(plan: Plan, mode: str, out: Path, cache: Path | None, data:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``qr-cl reproduce``."""
     parser.add_argument("--quick", action="store_true",
-                        help="the quick plan (about 5 minutes on 2 cores): top-K/Q-Render K in {5, 10, 40}, "
-                             "noise {0, 0.5, 2}, 150 steps, 2 training rooms")
+                        help="the quick plan: top-K/Q-Render K in {5, 10, 40}, noise {0, 0.5, 2}, 150 steps, "
+                             "2 training rooms, 3 seeds")
+    parser.add_argument("--features", choices=tuple(FEATURE_FIELDS), default="clip",
+                        help="simulated CLIP features around the real CLIP text embeddings of the class names "
+                             "(default), or random nearly orthogonal class prototypes (earlier releases)")
     parser.add_argument("--smoke", action="store_true", help="seconds on tiny rooms (tests; numbers mean nothing)")
     parser.add_argument("--out", default="qr-cl-reproduce", help="report folder (default ./qr-cl-reproduce)")
     parser.add_argument("--cache", help="scene cache (default $QR_CL_CACHE/scenes or ~/.cache/qr-cl/scenes)")
@@ -110,8 +127,8 @@ def run(args: argparse.Namespace) -> int:
     if args.data and not Path(args.data).is_dir():
         raise FileNotFoundError(2, "no such folder (--data)", args.data)
     results = run_reproduction(PLANS[mode], mode, out, Path(args.cache) if args.cache else None,
-                               Path(args.data) if args.data else None, args.seed)
+                               Path(args.data) if args.data else None, args.seed, args.features)
     for c in results["claims"]:
-        print(f"{verdict(c['holds']):>15}: {c['claim']} ({c['measured']})")
+        print(f"{c['verdict']:>15}: {c['claim']} ({c['measured']})")
     print(f"reproduce ({mode}) finished in {results['wall_s']:.0f} s. Report: {(out / 'report.md').resolve()}")
     return 0

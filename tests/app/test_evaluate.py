@@ -11,7 +11,7 @@ from qr_cl.app.evaluation.labels import ground_truth, pseudo_labels, reached_gau
 from qr_cl.app.evaluation.metrics import confusion_matrix, miou_macc
 from qr_cl.app.evaluation.scoring import evaluate_features
 from qr_cl.app.scenes.folders import load_scene_folder
-from qr_cl.app.scenes.synthetic import class_prototypes
+from qr_cl.app.scenes.room_features import RoomFeatures
 from qr_cl.app.training.rays import view_plan
 from qr_cl.scene import Gaussians
 from qr_cl.stages import select
@@ -68,7 +68,7 @@ def test_oracle_features_score_high_random_low(scene):
     truth = data.gaussian_labels
     agree = gt[gt >= 0] == truth[gt >= 0]
     assert agree.mean() > 0.9
-    protos = class_prototypes(tiny_config().dim, tiny_config().prototype_seed)
+    protos = RoomFeatures(tiny_config()).text()
     oracle = np.stack([protos[max(int(c), 1)] for c in truth]).astype(np.float32)
     good = evaluate_features(data, oracle, gt)
     rand = evaluate_features(data, np.random.default_rng(0).standard_normal(oracle.shape).astype(np.float32), gt)
@@ -99,14 +99,17 @@ def test_reached_gaussians_are_those_some_pixel_selects(scene):
 def test_eval_command_writes_tables_images_and_ply(scene, tmp_path, capsys):
     import open3d as o3d
     data = load_scene_folder(scene)
-    protos = class_prototypes(tiny_config().dim, tiny_config().prototype_seed)
+    protos = RoomFeatures(tiny_config()).text()
     np.save(tmp_path / "f.npy", np.stack([protos[max(int(c), 1)] for c in data.gaussian_labels]).astype(np.float32))
     out = tmp_path / "eval"
     assert main(["eval", str(scene), "--features", str(tmp_path / "f.npy"), "--out", str(out), "--views", "0", "1"]) == 0
     res = json.loads((out / "results.json").read_text())
     assert res["scenes"][0]["metrics"]["19"]["miou"] > 0.7
     assert "mIoU19" in (out / "results.md").read_text() and "results.md" in capsys.readouterr().out
-    assert (out / "images" / f"{scene.name}_view001.png").is_file()
+    picture = out / "images" / f"{scene.name}_{data.frames[1].camera.name}.png"
+    assert picture.is_file() and data.frames[1].camera.name
+    from PIL import Image
+    assert Image.open(picture).size[0] >= 5 * 320          # five panels of at least 320x240
     cloud = o3d.io.read_point_cloud(str(out / "images" / f"{scene.name}_segmentation.ply"))
     assert len(cloud.points) == len(data.gaussians) and cloud.has_colors()
 

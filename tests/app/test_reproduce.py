@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from qr_cl.app.cli import DELEGATED, build_parser, main
-from qr_cl.app.experiments.claims import paper_claims
+from qr_cl.app.experiments.claims import Stat, at_least, combined, paper_claims
 from qr_cl.app.experiments.plan import PLANS, TrainingRun, plan_runs
 from qr_cl.app.experiments.report import report_markdown, write_report
 from qr_cl.app.experiments.rgb import psnr
@@ -22,8 +22,9 @@ from qr_cl.app.scenes.room_config import SyntheticConfig
 from qr_cl.app.scenes.synthetic import room_folder
 from tests.synthetic_helpers import tiny_config
 
+# orthogonal prototypes: at 32 channels a mask's nearest text feature is its own class's
 SPLAT_ROOM = dict(style="3dgs", n_gaussians=5000, layers=2.0, n_objects=3, n_wall_objects=1, n_views=3, width=80,
-                  height=60, dim=32)
+                  height=60, dim=32, features="orthogonal")
 
 
 @pytest.fixture(scope="module")
@@ -83,10 +84,12 @@ def test_splat_room_is_seeded_and_cached(splat_room, tmp_path):
     assert not filecmp.cmp(splat_room / "point_cloud.ply", other / "point_cloud.ply", shallow=False)
 
 
-def test_flat_rooms_keep_their_cache_keys():
-    # the demo's cached rooms: the "3dgs" style's fields must not enter a flat room's key
-    assert SyntheticConfig(seed=0, n_gaussians=24000).key() == "045fdfc35f46"
-    assert SyntheticConfig(seed=0, n_gaussians=24000, layers=7.0).key() == "045fdfc35f46"
+def test_cache_keys_hold_only_the_fields_a_room_reads():
+    # a flat room's key ignores the "3dgs" style's fields; each feature model's ignores the other's
+    flat = SyntheticConfig(seed=0, n_gaussians=24000)
+    assert SyntheticConfig(seed=0, n_gaussians=24000, layers=7.0).key() == flat.key()
+    assert SyntheticConfig(seed=0, n_gaussians=24000, mask_noise=0.9).key() == flat.key()
+    assert SyntheticConfig(seed=0, n_gaussians=24000, clip_noise=3.0).key() != flat.key()
     assert SyntheticConfig(seed=0, style="3dgs").key() != SyntheticConfig(seed=0, style="3dgs", layers=7.0).key()
     with pytest.raises(ValueError, match="style"):
         SyntheticConfig(style="mesh")
@@ -147,28 +150,46 @@ def test_psnr():
 
 def test_renderers_of_the_plans():
     full = plan_runs(PLANS["full"])
-    labels = [r.label for r in full]
-    assert len(set(labels)) == len(labels)
-    assert TrainingRun("volume") in full
-    for k in (5, 10, 20, 40, 50):
-        assert TrainingRun("topk", k) in full and TrainingRun("quantile", k) in full
-    assert TrainingRun("stratified", 40) in full and TrainingRun("quantile", 40, seed=1) in full
+    keys = [(r.label, r.seed) for r in full]
+    assert len(set(keys)) == len(keys)
+    assert {r.seed for r in full} == {0, 1, 2} and PLANS["quick"].seeds >= 3
+    for seed in range(3):
+        assert TrainingRun("volume", seed=seed) in full and TrainingRun("stratified", 40, seed=seed) in full
+        for k in (5, 10, 20, 40, 50):
+            assert TrainingRun("topk", k, seed=seed) in full and TrainingRun("quantile", k, seed=seed) in full
     assert {r.noise for r in full} == {0.0, 0.25, 0.5, 1.0, 2.0, 4.0}
     assert all(r.sampler == "quantile" and r.k == 40 for r in full if r.noise)
+    assert len(full) == 3 * len({r.label for r in full})
     assert len(plan_runs(PLANS["quick"])) < len(full)
 
 
-def _results(q5: float = 30.0, t5: float = 25.0, noise_half: float = 39.5, strat_ms: float = 20.0,
-             baseline: float = 45.0) -> dict:
-    def run(sampler, k, miou, noise=0.0, seed=0):
-        return {"sampler": sampler, "k": k, "noise": noise, "seed": seed, "label": TrainingRun(sampler, k, noise, seed).label,
-                "steps": 10,
-                "train_s": 1.0, "final_loss": 0.5, "miou19": miou, "macc19": miou + 5, "miou15": miou + 1,
-                "macc15": 0.0, "miou10": miou + 2, "macc10": 0.0, "miou19_reached": miou + 3,
-                "macc19_reached": miou + 4}
-    runs = [run("volume", 0, 40.0), run("topk", 5, t5), run("quantile", 5, q5), run("quantile", 40, 40.5),
-            run("stratified", 40, 40.2), run("quantile", 40, noise_half, 0.5), run("quantile", 40, 12.0, 4.0),
-            run("quantile", 40, 41.7, seed=1)]
+def test_stat_and_verdicts():
+    s = Stat.of([40.0, 42.0, 44.0])
+    assert (s.mean, s.std, s.n) == (42.0, 2.0, 3) and str(s) == "42.0 ± 2.0"
+    assert Stat.of([5.0]).std == 0.0
+    assert at_least(Stat(50, 1, 3), Stat(45, 1, 3)) == "reproduced"            # 49 > 46
+    assert at_least(Stat(50, 3, 3), Stat(45, 3, 3)) == "undecided"             # bands overlap
+    assert at_least(Stat(40, 1, 3), Stat(45, 1, 3)) == "not reproduced"
+    assert at_least(Stat(44, 0.5, 3), Stat(45, 0.2, 3), -2.0) == "reproduced"  # margin: a >= b - 2
+    assert at_least(None, Stat(1, 0, 1)) == "not measured"
+    assert combined(["reproduced", "reproduced"]) == "reproduced"
+    assert combined(["reproduced", "undecided"]) == "undecided"
+    assert combined(["undecided", "not reproduced"]) == "not reproduced"
+    assert combined([]) == "not measured"
+
+
+def _results(q5: float = 30.0, t5: float = 25.0, noise_half: float = 40.5, strat_ms: float = 20.0,
+             baseline: float = 45.0, spread: float = 0.2) -> dict:
+    """Results of runs over three seeds, each run's mIoU19 its value -spread, 0, +spread (standard
+    deviation ``spread``)."""
+    def run(sampler, k, miou, noise=0.0):
+        return [{"sampler": sampler, "k": k, "noise": noise, "seed": seed,
+                 "label": TrainingRun(sampler, k, noise, seed).label, "steps": 10, "train_s": 1.0,
+                 "final_loss": 0.5, "miou19": miou + d, "macc19": miou + d + 5, "miou15": miou + 1, "macc15": 0.0,
+                 "miou10": miou + 2, "macc10": 0.0, "miou19_reached": miou + 3, "macc19_reached": miou + 4}
+                for seed, d in enumerate((-spread, 0.0, spread))]
+    runs = [*run("volume", 0, 40.0), *run("topk", 5, t5), *run("quantile", 5, q5), *run("quantile", 40, 40.5),
+            *run("stratified", 40, 40.2), *run("quantile", 40, noise_half, 0.5), *run("quantile", 40, 12.0, 4.0)]
     times = [{"sampler": s, "k": k, "ms": ms, "median_ms": ms} for s, k, ms in
              (("volume", 0, 30.0), ("topk", 5, 8.0), ("quantile", 5, 6.0), ("quantile", 40, 10.0),
               ("stratified", 40, strat_ms), ("volume_fused", 0, 25.0))]
@@ -176,13 +197,17 @@ def _results(q5: float = 30.0, t5: float = 25.0, noise_half: float = 39.5, strat
               "opacity_mean": 0.5, "entries_mean": e, "entries_median": e, "entries_p90": e, "holding_90": 3.0,
               "coverage": 1.0}
              for name, e in (("room", 80.0), ("fox", 21.0))]
+    base = [{"label": "per-scene baseline, Q-Render K=40", "steps": 10, "train_s": 2.0, "train_seed": seed,
+             "miou19": baseline + d, "macc19": 60.0, "miou19_reached": 48.0, "macc19_reached": 65.0}
+            for seed, d in enumerate((-spread, 0.0, spread))]
     return {"mode": "test", "plan": {"room": {}, "steps": 10, "views": 1, "rays": 8, "timing_size": [8, 6],
-                                     "timing_rounds": 1, "timing_views": 1},
-            "seed": 0, "device": "cpu", "wall_s": 60.0, "scenes": {"train": ["a"], "held_out": "b"},
-            "statistics": stats, "runs": runs, "render_ms": times,
-            "baseline": {"label": "per-scene baseline, Q-Render K=40", "steps": 10, "train_s": 2.0,
-                         "miou19": baseline, "macc19": 60.0, "miou19_reached": 48.0, "macc19_reached": 65.0},
+                                     "timing_rounds": 1, "timing_views": 1, "seeds": 3},
+            "seed": 0, "features": "clip", "mask_accuracy19": {"a": 0.68, "b": 0.72}, "device": "cpu",
+            "wall_s": 60.0, "scenes": {"train": ["a"], "held_out": "b"},
+            "statistics": stats, "runs": runs, "render_ms": times, "baseline": base,
             "reached": {"gaussians": 7, "labelled": 9},
+            "segmentation": {"label": "GS-Net Q-Render K=40, seed 0", "files": ["confusion.png"],
+                             "per_class": [{"class": "desk", "iou": 12.5, "acc": 30.0, "support": 40}]},
             "profiles": {"k": 10, "rays": 4, "entries_mean": 80.0, "gap": {"Q-Render K=10": [0.1, 0.05]},
                          "files": ["transmittance_ray000.png"]},
             "rgb": [{"scene": "fox", "k": 20, "views": 1, "size": "8x6", "psnr_raw": 21.5, "psnr_alpha": 47.4,
@@ -190,24 +215,31 @@ def _results(q5: float = 30.0, t5: float = 25.0, noise_half: float = 39.5, strat
             "agreement": [{"sampler": "topk", "k": 5, "cosine": 0.9876}]}
 
 
-def test_claims_follow_the_numbers():
-    assert [c["holds"] for c in paper_claims(_results())] == [True, True, True, True, True, True]
-    # GS-Net's 40.5 is 0.81x of 50 (holds) and 0.79x of 51.5 (fails)
-    claims = paper_claims(_results(q5=30.0, t5=28.0, noise_half=38.0, strat_ms=10.5, baseline=51.5))
-    assert [c["holds"] for c in claims] == [True, False, False, False, False, True]
-    assert "40.5 vs 51.5 (0.79x)" in claims[4]["measured"] and "43.5 vs 48.0 (0.91x)" in claims[4]["measured"]
-    assert paper_claims(_results(baseline=50.0))[4]["holds"] is True
+def _verdicts(results: dict) -> list[str]:
+    return [c["verdict"] for c in paper_claims(results)]
+
+
+def test_claims_follow_the_numbers_over_seeds():
+    assert _verdicts(_results()) == ["reproduced"] * 6
+    # GS-Net's 40.5 against 0.8x the baseline: 50 -> 40 (holds) and 51.5 -> 41.2 (fails)
+    assert _verdicts(_results(q5=30.0, t5=28.0, noise_half=38.0, strat_ms=10.5, baseline=51.5)) == [
+        "reproduced", "not reproduced", "not reproduced", "not reproduced", "not reproduced", "reproduced"]
+    assert _verdicts(_results(baseline=50.0))[4] == "reproduced"
+    # wide spreads: the same means no longer decide the close claims
+    wide = _verdicts(_results(q5=30.0, t5=26.0, baseline=50.0, spread=2.0))
+    assert wide[1] == "undecided" and wide[4] == "undecided" and wide[0] == "undecided"
     bad = _results()
     bad["rgb"][0]["psnr_alpha"] = 25.0
-    bad["runs"][3]["miou19"] = 38.0                       # Q-Render K=40 two points under V-Render
-    claims = paper_claims(bad)
-    assert claims[0]["holds"] is False and claims[5]["holds"] is False
+    for r in bad["runs"]:
+        if r["sampler"] == "quantile" and r["k"] == 40 and not r["noise"]:
+            r["miou19"] -= 2.5                             # Q-Render K=40 two points under V-Render
+    assert _verdicts(bad)[0] == "not reproduced" and _verdicts(bad)[5] == "not reproduced"
     missing = _results()
     missing["runs"] = [r for r in missing["runs"] if r["sampler"] != "topk"]
     missing["rgb"] = []
     del missing["baseline"]
-    claims = paper_claims(missing)
-    assert claims[1]["holds"] is None and claims[4]["holds"] is None and claims[5]["holds"] is None
+    claims = _verdicts(missing)
+    assert claims[1] == claims[4] == claims[5] == "not measured"
 
 
 def test_report_writer(tmp_path):
@@ -217,17 +249,16 @@ def test_report_writer(tmp_path):
     assert all(f.is_file() and f.stat().st_size > 0 for f in files)
     text = (tmp_path / "report.md").read_text()
     assert text == report_markdown(json.loads((tmp_path / "results.json").read_text()))
-    assert "| top-K K=5 | 25.0 | 30.0 | 26.0 | 27.0 | 37.84 | 8.0 | 0.9876 |" in text
-    assert "| Q-Render K=5 | 30.0 | 35.0 | 31.0 | 32.0 | 49.98 | 6.0 | - |" in text
-    assert "| 0.5 | 39.5 | 44.5 | 50.18 |" in text
+    assert "| top-K K=5 | 25.0 ± 0.2 | 30.0 ± 0.2 | 26.0 ± 0.0 | 27.0 ± 0.0 | 37.84 | 8.0 | 0.9876 |" in text
+    assert "| Q-Render K=5 | 30.0 ± 0.2 | 35.0 ± 0.2 | 31.0 ± 0.0 | 32.0 ± 0.0 | 49.98 | 6.0 | - |" in text
+    assert "| 0.5 | 40.5 ± 0.2 | 45.5 ± 0.2 | 50.18 |" in text
     assert "| fox | 1 | 8x6 | 20 | 21.5 | 47.4 | 45.0 |" in text
     assert "| Q-Render K=10 | 0.100 | 0.050 |" in text
     assert text.count("| reproduced |") == 6
-    assert "(7 of 9)" in text
-    assert "| per-scene baseline, Q-Render K=40 | 45.0 | 60.0 | 48.0 | 65.0 | 2 |" in text
-    assert "| GS-Net, Q-Render K=40 | 40.5 | 45.5 | 43.5 | 44.5 | 1 |" in text
-    assert "scored mIoU19 41.7 against 40.5 (+1.2 points)" in text
-    assert "| Q-Render K=40, seed +1 | 41.7 |" in text
+    assert "(7 of 9)" in text and "repeated with 3 seeds" in text and "68-72 % of the masks" in text
+    assert "| per-scene baseline, Q-Render K=40 | 45.0 ± 0.2 | 60.0 ± 0.0 | 48.0 ± 0.0 | 65.0 ± 0.0 | 2 |" in text
+    assert "| GS-Net, Q-Render K=40 | 40.5 ± 0.2 | 45.5 ± 0.2 | 43.5 ± 0.0 | 44.5 ± 0.0 | 1 |" in text
+    assert "| desk | 12.5 | 30.0 | 40 |" in text and "![confusion](confusion.png)" in text
 
 
 def test_cli_registers_reproduce():
@@ -244,12 +275,16 @@ def test_smoke_run_writes_the_report(tmp_path, data_dir, capsys):
     assert {r["label"] for r in results["runs"]} == {r.label for r in plan_runs(PLANS["smoke"])}
     assert {t["sampler"] for t in results["render_ms"]} == {"volume", "topk", "quantile", "stratified", "volume_fused"}
     assert 0 < results["reached"]["gaussians"] <= results["reached"]["labelled"]
-    assert {"miou19", "miou19_reached"} <= set(results["baseline"]) and "miou19_reached" in results["runs"][0]
+    assert len(results["baseline"]) == PLANS["smoke"].seeds == len({r["seed"] for r in results["runs"]})
+    assert {"miou19", "miou19_reached"} <= set(results["baseline"][0]) and "miou19_reached" in results["runs"][0]
+    assert {c["verdict"] for c in results["claims"]} <= {"reproduced", "not reproduced", "undecided", "not measured"}
+    assert results["segmentation"]["per_class"] and 0 <= min(results["mask_accuracy19"].values()) <= 1
     real = (data_dir / "wakufactory-fox" / "fox.ply").is_file()
     assert ("fox" in {s["scene"] for s in results["statistics"]}) == real
     assert ("fox" in {r["scene"] for r in results["rgb"]}) == real
     assert all(r["psnr_alpha"] > r["psnr_raw"] - 1e-6 or r["scene"] != "fox" for r in results["rgb"])
     assert {"psnr_raw", "psnr_alpha", "psnr_own_alpha", "psnr_topk_alpha"} <= set(results["rgb"][0])
-    for name in ["report.md", "miou_vs_time.png", "scene_statistics.png"] + results["profiles"]["files"]:
+    for name in (["report.md", "miou_vs_time.png", "scene_statistics.png"] + results["profiles"]["files"]
+                 + results["segmentation"]["files"]):
         assert (out / name).is_file(), name
     assert "Report:" in capsys.readouterr().out

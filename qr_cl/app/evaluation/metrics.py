@@ -1,7 +1,8 @@
 """Open-vocabulary 3D segmentation metrics (OpenGaussian/ScanNet protocol): mIoU and mAcc.
 
 Class ids are NYU40 ids. :data:`SUBSETS` holds the 19 / 15 / 10 evaluated classes; :data:`NYU40_NAMES`
-names them (plus ``lamp``, an unlisted class the synthetic scenes use, which evaluation ignores).
+names them (plus the small objects the synthetic rooms place on furniture: pillow, books,
+television, box and lamp, unlisted classes that evaluation ignores).
 """
 from __future__ import annotations
 
@@ -10,7 +11,8 @@ import numpy as np
 NYU40_NAMES: dict[int, str] = {
     1: "wall", 2: "floor", 3: "cabinet", 4: "bed", 5: "chair", 6: "sofa", 7: "table", 8: "door",
     9: "window", 10: "bookshelf", 11: "picture", 12: "counter", 14: "desk", 16: "curtain",
-    24: "refrigerator", 28: "shower curtain", 33: "toilet", 34: "sink", 35: "lamp", 36: "bathtub",
+    18: "pillow", 23: "books", 24: "refrigerator", 25: "television", 28: "shower curtain", 29: "box",
+    33: "toilet", 34: "sink", 35: "lamp", 36: "bathtub",
 }
 
 SUBSETS: dict[int, tuple[int, ...]] = {

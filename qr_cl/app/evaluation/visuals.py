@@ -1,5 +1,10 @@
-"""Pictures of a segmentation: per view RGB | PCA of the rendered features | predicted classes |
-ground truth, a coloured and labelled PLY of the Gaussians, and the colour legend."""
+"""Pictures of a segmentation: per camera one figure of RGB | PCA of the rendered features |
+predicted classes | ground truth | relevancy of one text query, with titles and a legend naming
+the classes predicted or labelled in the scene; a coloured and labelled PLY of the Gaussians; the colour legend as markdown.
+
+The relevancy panel is the cosine similarity between the Q-Render (K=40) feature image and the
+query's text feature (from the scene's classes.json), shown with the turbo colour map stretched
+over the picture's 2nd..98th percentiles (so it shows where, not how much)."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -10,11 +15,14 @@ from matplotlib import colormaps
 
 from ...render import rasterize
 from ...runtime import SH_C0
-from ...scene import Gaussians
-from ..images import save_rgb
+from ...scene import Camera, Gaussians
+from ..images import plt
 from ..scenes.folders import SceneData
 from .metrics import NYU40_NAMES, SUBSETS
 from .scoring import predict
+
+#: The smallest panel of a picture, pixels (width, height).
+PANEL_SIZE = (320, 240)
 
 
 def _palette(ids) -> dict[int, np.ndarray]:
@@ -22,11 +30,11 @@ def _palette(ids) -> dict[int, np.ndarray]:
     return {int(c): np.asarray(cmap(i % 20)[:3], np.float32) for i, c in enumerate(sorted(ids))}
 
 
-def _render(scene: SceneData, values: np.ndarray, view: int, sampler: str = "quantile",
+def _render(scene: SceneData, values: np.ndarray, cam: Camera, sampler: str = "quantile",
             visible: np.ndarray | None = None) -> np.ndarray:
-    """Full image [H,W,C] of per-Gaussian ``values`` [N,C] from frame ``view`` (only the
-    Gaussians where ``visible`` [N] bool is set, if given)."""
-    g, cam = scene.gaussians, scene.frames[view].camera
+    """Full image [H,W,C] of per-Gaussian ``values`` [N,C] seen by ``cam`` (only the Gaussians
+    where ``visible`` [N] bool is set, if given)."""
+    g = scene.gaussians
     opacities = g.opacities if visible is None else np.where(visible, g.opacities, 0).astype(np.float32)
     img, _, _ = rasterize(g.means, g.quats, g.scales, opacities, np.ascontiguousarray(values, np.float32),
                           cam.viewmat, cam.K, cam.width, cam.height, sampler=sampler, k=40)
@@ -60,29 +68,82 @@ def write_coloured_ply(path: Path, gaussians: Gaussians, colours: np.ndarray, pr
         fh.write(table.tobytes())
 
 
-def write_visuals(scene: SceneData, features: np.ndarray, gt: np.ndarray, out: Path, views=(0,), subset: int = 19) -> list[Path]:
-    """Per view a PNG [RGB | PCA of the rendered features | predicted classes | ground truth (only
-    the labelled Gaussians drawn)], and a
-    coloured, labelled PLY of the Gaussians (predicted colours). Returns the files written."""
+def frame_cameras(scene: SceneData, views) -> list[Camera]:
+    """The cameras of the scene's frames ``views`` (indices), enlarged to at least
+    :data:`PANEL_SIZE`."""
+    cams = [scene.frames[v].camera for v in views]
+    return [c if c.width >= PANEL_SIZE[0] else c.resized(PANEL_SIZE[0], round(c.height * PANEL_SIZE[0] / c.width))
+            for c in cams]
+
+
+def default_query(table, gt: np.ndarray) -> str:
+    """The name of the class of ``table`` other than wall and floor with the most Gaussians in
+    ``gt`` [N] (wall if there is none)."""
+    ids = [int(c) for c in table.ids if int(c) not in (1, 2)]
+    counts = [(int((gt == c).sum()), c) for c in ids]
+    best = max(counts, default=(0, 1))
+    return table.names[list(table.ids).index(best[1])] if best[0] else table.names[0]
+
+
+def _figure(path: Path, panels: list[tuple[str, np.ndarray]], legend: list[tuple[str, np.ndarray]]) -> None:
+    """One PNG: the ``panels`` (title, image [H,W,3] in [0,1]) side by side at their pixel size,
+    titled, and rows of legend patches (name, colour [3]) under them."""
+    h, w = panels[0][1].shape[:2]
+    title_px, legend_px = 26, 30 * (1 + (len(legend) - 1) // 8) if legend else 0
+    dpi = 100
+    fig = plt.figure(figsize=(len(panels) * w / dpi, (h + title_px + legend_px) / dpi), dpi=dpi)
+    total = h + title_px + legend_px
+    for i, (title, image) in enumerate(panels):
+        ax = fig.add_axes((i / len(panels), legend_px / total, 1 / len(panels), h / total))
+        ax.imshow(np.clip(image, 0, 1), interpolation="nearest")
+        ax.set_axis_off()
+        ax.set_title(title, fontsize=11)
+    if legend:
+        handles = [plt.Rectangle((0, 0), 1, 1, color=colour) for _, colour in legend]
+        fig.legend(handles, [name for name, _ in legend], loc="lower center", ncol=min(len(legend), 8),
+                   fontsize=10, frameon=False)
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+
+
+def write_visuals(scene: SceneData, features: np.ndarray, gt: np.ndarray, out: Path, cameras: list[Camera],
+                  query: str | None = None, subset: int = 19) -> list[Path]:
+    """Per camera a figure (module docstring) of per-Gaussian ``features`` [N,C] against ``gt``
+    [N] (only the labelled Gaussians drawn in the ground truth) with the relevancy of ``query``
+    (a class name of the scene's classes.json; default :func:`default_query`), and a coloured,
+    labelled PLY of the Gaussians (predicted colours). Returns the files written."""
     out.mkdir(parents=True, exist_ok=True)
     table = scene.classes.subset(SUBSETS[subset])
+    query = query or default_query(table, gt)
+    if query not in scene.classes.names:
+        raise KeyError(f"{scene.root}: query {query!r} is not a class of classes.json")
+    text = scene.classes.text_features[scene.classes.names.index(query)]
     pred = predict(features, table)
     palette = _palette(table.ids)
     pred_rgb = np.stack([palette[int(c)] for c in pred])
     gt_rgb = np.stack([palette.get(int(c), np.zeros(3, np.float32)) for c in gt])
+    labelled = np.isin(gt, table.ids)
+    legend = [(name, palette[int(c)]) for c, name in zip(table.ids, table.names) if (pred == c).any() or (gt == c).any()]
+    g = scene.gaussians
     files = []
-    for v in views:
-        g = scene.gaussians
-        rgb = _render(scene, np.maximum(g.sh[:, 0] * SH_C0 + 0.5, 0), v, "volume")
-        panels = [rgb, pca_rgb(_render(scene, features, v)), _render(scene, pred_rgb, v, "volume"),
-                  _render(scene, gt_rgb, v, "volume", np.isin(gt, table.ids))]
-        path = out / f"{scene.name}_view{v:03d}.png"
-        save_rgb(path, np.concatenate(panels, axis=1))
+    for i, cam in enumerate(cameras):
+        feature_image = _render(scene, features, cam)
+        norm = np.linalg.norm(feature_image, axis=-1)
+        cosine = feature_image @ text / np.maximum(norm, 1e-12)
+        lo, hi = np.percentile(cosine[norm > 0], (2, 98)) if (norm > 0).any() else (0.0, 1.0)
+        relevancy = colormaps["turbo"](np.clip((cosine - lo) / max(hi - lo, 1e-12), 0, 1))[..., :3]
+        pred_image = _render(scene, pred_rgb, cam, "volume")
+        gt_image = _render(scene, gt_rgb, cam, "volume", labelled)
+        panels = [("RGB", _render(scene, np.maximum(g.sh[:, 0] * SH_C0 + 0.5, 0), cam, "volume")),
+                  ("feature PCA", pca_rgb(feature_image)), ("prediction", pred_image),
+                  ("ground truth", gt_image), (f'relevancy "{query}"', relevancy)]
+        path = out / f"{scene.name}_{cam.name or f'camera{i}'}.png"
+        _figure(path, panels, legend)
         files.append(path)
     ply = out / f"{scene.name}_segmentation.ply"
     write_coloured_ply(ply, scene.gaussians, pred_rgb, pred, gt)
-    legend = out / "legend.md"
-    legend.write_text("| class | colour |\n| --- | --- |\n" + "".join(
+    legend_md = out / "legend.md"
+    legend_md.write_text("| class | colour |\n| --- | --- |\n" + "".join(
         f"| {NYU40_NAMES.get(int(c), c)} | #{''.join(f'{int(round(x * 255)):02x}' for x in palette[int(c)])} |\n"
         for c in table.ids))
-    return files + [ply, legend]
+    return files + [ply, legend_md]

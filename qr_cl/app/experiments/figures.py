@@ -4,22 +4,24 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..images import plt
-from .claims import first_seed_runs, render_ms
+from .claims import metric, render_ms
 from .plan import LABELS
 
 
 def plot_miou_vs_time(results: dict, path: Path) -> None:
-    """Fig. 4a: held-out mIoU19 against rendering time (ms per view) of every clean run."""
+    """Fig. 4a: held-out mIoU19 (mean over seeds, bars: standard deviation) against rendering time
+    (ms per view) of every clean renderer."""
     fig, ax = plt.subplots(figsize=(6, 4))
     for sampler, style in (("topk", "s-"), ("quantile", "o-"), ("stratified", "^-"), ("volume", "D")):
-        pts = sorted((r["k"], render_ms(results, sampler, r["k"]), r["miou19"]) for r in first_seed_runs(results)
-                     if r["sampler"] == sampler and not r["noise"])
+        ks = sorted({r["k"] for r in results["runs"] if r["sampler"] == sampler and not r["noise"]})
+        pts = [(k, render_ms(results, sampler, k), metric(results, sampler, k)) for k in ks]
         pts = [p for p in pts if p[1] is not None]
         if pts:
-            ax.plot([p[1] for p in pts], [p[2] for p in pts], style, label=LABELS[sampler])
+            ax.errorbar([p[1] for p in pts], [p[2].mean for p in pts], yerr=[p[2].std for p in pts], fmt=style,
+                        capsize=3, label=LABELS[sampler])
             for k, t, m in pts:
                 if k:
-                    ax.annotate(f"K={k}", (t, m), fontsize=7, xytext=(3, 3), textcoords="offset points")
+                    ax.annotate(f"K={k}", (t, m.mean), fontsize=7, xytext=(3, 3), textcoords="offset points")
     ax.set(xlabel="rendering time per view (ms, 512-D features)", ylabel="held-out mIoU19 (%)",
            title="mIoU vs rendering time (Fig. 4a)")
     ax.legend(fontsize=8)

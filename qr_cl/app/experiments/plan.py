@@ -12,7 +12,8 @@ LABELS = {"volume": "V-Render", "quantile": "Q-Render", "topk": "top-K", "strati
 @dataclass
 class Plan:
     """The budget of one reproduction: rooms (``room``: SyntheticConfig overrides of the "3dgs"
-    style), training (same ``steps``, ``views`` and ``rays`` for every renderer), the K values and
+    style), training (same ``steps``, ``views`` and ``rays`` for every renderer, each run repeated
+    with ``seeds`` seeds), the K values and
     noise scales, the sizes of the timing, profile and RGB measurements (pixels), and the flat
     room compared with them (``flat_room``: overrides of the default flat room, the demo's)."""
 
@@ -22,6 +23,7 @@ class Plan:
     stratified_ks: tuple[int, ...]
     noise: tuple[float, ...]
     room: dict = field(default_factory=dict)
+    seeds: int = 3
     views: int = 4
     rays: int = 2048
     timing_views: int = 2
@@ -45,7 +47,7 @@ PLANS = {
     "smoke": Plan(train_rooms=1, steps=2, ks=(5,), stratified_ks=(5,), noise=(0.0, 1.0),
                   room={"n_gaussians": 5000, "layers": 2.0, "n_objects": 3, "n_wall_objects": 1, "n_views": 4,
                         "width": 80, "height": 60, "dim": 32, "points_per_gaussian": 8},
-                  views=2, rays=256, timing_views=1, timing_size=(64, 48), timing_rounds=1, rgb_ks=(10,),
+                  seeds=2, views=2, rays=256, timing_views=1, timing_size=(64, 48), timing_rounds=1, rgb_ks=(10,),
                   rgb_views=1, rgb_size=(64, 48), stats_views=1, dense_gaussians=5000,
                   flat_room={"n_gaussians": 3000, "n_views": 1, "width": 64, "height": 48, "dim": 32}),
 }
@@ -55,7 +57,7 @@ PLANS = {
 class TrainingRun:
     """One training run of the comparison: the feature renderer it trains through (sampler name
     and K, 0 for V-Render), the opacity-noise scale of the rooms it trains on, and the offset of
-    its training seed (a repeated run measures the run-to-run spread)."""
+    its training seed (network initialisation and rays)."""
 
     sampler: str
     k: int = 0
@@ -64,17 +66,17 @@ class TrainingRun:
 
     @property
     def label(self) -> str:
+        """The renderer and noise (the same for every seed)."""
         name = LABELS[self.sampler] + (f" K={self.k}" if self.k else "")
-        return name + (f", opacity noise {self.noise:g}" if self.noise else "") + (
-            f", seed +{self.seed}" if self.seed else "")
+        return name + (f", opacity noise {self.noise:g}" if self.noise else "")
 
 
 def plan_runs(plan: Plan) -> list[TrainingRun]:
-    """Every training run of ``plan``: V-Render, top-K and Q-Render at each K, Stratified-K,
-    Q-Render K=40 at each noise scale (noise 0 is the clean Q-Render K=40 run, added if the K
-    values lack 40), and Q-Render K=40 again with the next seed (the run-to-run spread)."""
+    """Every training run of ``plan``, each with seed offsets 0 .. ``plan.seeds`` - 1: V-Render,
+    top-K and Q-Render at each K, Stratified-K, and Q-Render K=40 at each noise scale (noise 0 is
+    the clean Q-Render K=40 run, added if the K values lack 40)."""
     runs = [TrainingRun("volume")]
     runs += [TrainingRun(s, k) for s in ("topk", "quantile") for k in plan.ks]
     runs += [TrainingRun("stratified", k) for k in plan.stratified_ks]
     runs += [TrainingRun("quantile", NOISE_K, s) for s in plan.noise if s or NOISE_K not in plan.ks]
-    return runs + [TrainingRun("quantile", NOISE_K, seed=1)]
+    return [TrainingRun(r.sampler, r.k, r.noise, seed) for seed in range(plan.seeds) for r in runs]

@@ -7,7 +7,7 @@ import math
 from pathlib import Path
 
 from ..renderers import FUSED_NAME
-from .claims import PAPER, cosine_to_volume, find_run, first_seed_runs, render_ms, verdict
+from .claims import PAPER, Stat, baseline_metric, cosine_to_volume, metric, render_ms, runs_of
 from .figures import plot_miou_vs_time
 from .plan import NOISE_K
 from .scene_statistics import plot_scene_statistics
@@ -17,20 +17,24 @@ def _fmt(value: float | None, digits: int = 1) -> str:
     return "-" if value is None or (isinstance(value, float) and math.isnan(value)) else f"{value:.{digits}f}"
 
 
-def _paper_miou(run: dict) -> float | None:
-    """The paper's Fig. 4 mIoU of a clean run's renderer (None where the paper has none)."""
-    entry = PAPER.get(run["sampler"])
-    return entry.get(run["k"]) if isinstance(entry, dict) else entry
+def _paper_miou(sampler: str, k: int) -> float | None:
+    """The paper's Fig. 4 mIoU of a renderer (None where the paper has none)."""
+    entry = PAPER.get(sampler)
+    return entry.get(k) if isinstance(entry, dict) else entry
 
 
-def _spread(results: dict) -> str:
-    """A sentence on the run-to-run spread: Q-Render K=40 trained with two seeds."""
-    first, again = find_run(results, "quantile", NOISE_K), find_run(results, "quantile", NOISE_K, seed=1)
-    if not (first and again):
-        return "One seed per run; the run-to-run spread was not measured."
-    return (f"One seed per run; Q-Render K=40 trained again with the next seed scored mIoU19 {again['miou19']:.1f} "
-            f"against {first['miou19']:.1f} ({again['miou19'] - first['miou19']:+.1f} points): differences of that "
-            "size between renderers are within run-to-run noise.")
+def _stat(value: Stat | None) -> str:
+    return "-" if value is None or math.isnan(value.mean) else str(value)
+
+
+def _renderers(results: dict, noise: bool) -> list[tuple[str, int, float, str]]:
+    """(sampler, k, noise, label) of each distinct run, in the plan's order (noisy ones only if
+    ``noise``, else the clean ones)."""
+    seen = {}
+    for r in results["runs"]:
+        if bool(r["noise"]) == noise:
+            seen.setdefault((r["sampler"], r["k"], r["noise"]), r["label"])
+    return [(*key, label) for key, label in seen.items()]
 
 
 def baseline_section(results: dict) -> list[str]:
@@ -44,13 +48,47 @@ def baseline_section(results: dict) -> list[str]:
              "the room. \"all\": every labelled Gaussian; \"reached\": the labelled Gaussians that some pixel's "
              f"Q-Render K={NOISE_K} selection in the room's views holds ({reached['gaussians']} of "
              f"{reached['labelled']}), the only ones the baseline's rays can train: the others keep their random "
-             "initial features.", "",
+             "initial features. Mean ± standard deviation over the seeds.", "",
              "| model | mIoU19 all | mAcc19 all | mIoU19 reached | mAcc19 reached | train s |",
              "| --- | ---: | ---: | ---: | ---: | ---: |"]
-    rows = [base] + [r for r in (find_run(results, "quantile", NOISE_K), find_run(results, "volume")) if r]
-    lines += [f"| {'GS-Net, ' if r is not base else ''}{r['label']} | {_fmt(r['miou19'])} | {_fmt(r['macc19'])} | "
-              f"{_fmt(r['miou19_reached'])} | {_fmt(r['macc19_reached'])} | {r['train_s']:.0f} |" for r in rows]
+    keys = ("miou19", "macc19", "miou19_reached", "macc19_reached")
+    lines.append(f"| {base[0]['label']} | " + " | ".join(_stat(baseline_metric(results, k)) for k in keys) +
+                 f" | {sum(b['train_s'] for b in base) / len(base):.0f} |")
+    for sampler, k in (("quantile", NOISE_K), ("volume", 0)):
+        runs = runs_of(results, sampler, k)
+        if runs:
+            lines.append(f"| GS-Net, {runs[0]['label']} | " + " | ".join(_stat(metric(results, sampler, k, key=m))
+                                                                    for m in keys) +
+                         f" | {sum(r['train_s'] for r in runs) / len(runs):.0f} |")
     return lines + [""]
+
+
+def segmentation_section(results: dict) -> list[str]:
+    """The main run's per-class IoU table, confusion matrix and pictures."""
+    seg = results.get("segmentation")
+    if not seg:
+        return []
+    lines = [f"## Per class: {seg['label']} (held-out room)", "",
+             "IoU and accuracy in % per class over the labelled Gaussians (support: their number); the confusion "
+             "matrix shows where each class's Gaussians went (rows normalised).", "",
+             "| class | IoU | accuracy | support |", "| --- | ---: | ---: | ---: |"]
+    lines += [f"| {c['class']} | {c['iou']:.1f} | {c['acc']:.1f} | {c['support']} |" for c in seg["per_class"]]
+    lines += ["", "Pictures, from above the room: RGB | PCA of the Q-Render feature image | predicted classes | "
+              "ground truth (labelled Gaussians only) | cosine of the feature image to one class's text feature "
+              "(stretched, turbo colours: red high).", ""]
+    return lines + [f"![{Path(f).stem}]({f})" for f in seg["files"]] + [""]
+
+
+def _features_sentence(results: dict) -> str:
+    """What the rooms' simulated CLIP features are, with the measured mask accuracy."""
+    acc = list(results.get("mask_accuracy19", {}).values())
+    if results.get("features", "clip") == "orthogonal":
+        return ("The \"CLIP\" features are simulated from random, nearly orthogonal class prototypes "
+                "(qr_cl/app/scenes/room_features.py).")
+    return ("The \"CLIP\" features are simulated around the real CLIP ViT-B/32 text embeddings of the class names "
+            "(qr_cl/app/scenes/room_features.py): a mask's feature names its own class among the 19 for "
+            f"{100 * min(acc):.0f}-{100 * max(acc):.0f} % of the masks of these rooms (CLIP on object crops: about "
+            "60-75 %)." if acc else "")
 
 
 def report_markdown(results: dict) -> str:
@@ -61,9 +99,11 @@ def report_markdown(results: dict) -> str:
              f"GS-Net (small sparse UNet) trained on {len(results['scenes']['train'])} synthetic \"3dgs\" rooms "
              f"({plan['room']}) for {plan['steps']} steps of {plan['views']} views x {plan['rays']} rays through each "
              f"renderer (the same budget), evaluated on the held-out room {results['scenes']['held_out']} (ground "
-             "truth: the generator's per-Gaussian labels, opacity >= 0.1). The \"CLIP\" features are simulated "
-             f"(qr_cl/app/scenes/synthetic.py). {_spread(results)} Device: {results['device']}. Whole run: "
-             f"{results['wall_s'] / 60:.1f} min.", "",
+             "truth: the generator's per-Gaussian labels, opacity >= 0.1). " + _features_sentence(results) +
+             f" Every run is repeated with {plan['seeds']} seeds (network initialisation and rays): tables give the "
+             "mean ± standard deviation over them, and a claim counts as reproduced or not only when the bands do "
+             f"not overlap (else undecided). Device: {results['device']}. Whole run: {results['wall_s'] / 60:.1f} "
+             "min.", "",
              "## Scenes against real captures", "",
              "Entries: the Gaussians V-Render blends per ray (alpha >= 1/255 until T < 1e-4), over the rays that hit "
              "anything; 90 % weight: the fewest Gaussians holding 90 % of a ray's weight (mean over sampled hit rays), "
@@ -84,21 +124,24 @@ def report_markdown(results: dict) -> str:
               "| renderer | mIoU19 | mAcc19 | mIoU15 | mIoU10 | paper mIoU19 | render ms | cos to V | train s | "
               "final loss |",
               "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
-    for r in (r for r in results["runs"] if not r["noise"]):
-        lines.append(f"| {r['label']} | {_fmt(r['miou19'])} | {_fmt(r['macc19'])} | {_fmt(r['miou15'])} | "
-                     f"{_fmt(r['miou10'])} | {_fmt(_paper_miou(r), 2)} | "
-                     f"{_fmt(render_ms(results, r['sampler'], r['k']))} | "
-                     f"{_fmt(cosine_to_volume(results, r['sampler'], r['k']), 4)} | "
-                     f"{r['train_s']:.0f} | {r['final_loss']:.3f} |")
+    for sampler, k, noise, label in _renderers(results, noise=False):
+        runs = runs_of(results, sampler, k)
+        lines.append(f"| {label} | " + " | ".join(_stat(metric(results, sampler, k, key=m))
+                                                 for m in ("miou19", "macc19", "miou15", "miou10")) +
+                     f" | {_fmt(_paper_miou(sampler, k), 2)} | {_fmt(render_ms(results, sampler, k))} | "
+                     f"{_fmt(cosine_to_volume(results, sampler, k), 4)} | "
+                     f"{sum(r['train_s'] for r in runs) / len(runs):.0f} | "
+                     f"{sum(r['final_loss'] for r in runs) / len(runs):.3f} |")
     lines += [f"| fused V-Render kernel (no selection) | | | | | | {_fmt(render_ms(results, FUSED_NAME))} | | | |", "",
               "![mIoU vs rendering time](miou_vs_time.png)", ""]
+    lines += segmentation_section(results)
     lines += baseline_section(results)
     lines += ["## Opacity noise (Q-Render K=40)", "",
               "| noise scale | mIoU19 | mAcc19 | paper mIoU19 |", "| ---: | ---: | ---: | ---: |"]
-    for r in sorted((r for r in first_seed_runs(results) if r["sampler"] == "quantile" and r["k"] == NOISE_K),
-                    key=lambda r: r["noise"]):
-        lines.append(f"| {r['noise']:g} | {_fmt(r['miou19'])} | {_fmt(r['macc19'])} | "
-                     f"{_fmt(PAPER['noise'].get(r['noise']), 2)} |")
+    scales = sorted({r["noise"] for r in results["runs"] if r["sampler"] == "quantile" and r["k"] == NOISE_K})
+    lines += [f"| {s:g} | {_stat(metric(results, 'quantile', NOISE_K, s))} | "
+              f"{_stat(metric(results, 'quantile', NOISE_K, s, 'macc19'))} | {_fmt(PAPER['noise'].get(s), 2)} |"
+              for s in scales]
     prof = results["profiles"]
     lines += ["", f"## Transmittance profiles (Fig. 3), K={prof['k']}", "",
               f"Over {prof['rays']} random hit rays of the held-out room's first view (V-Render blends "
@@ -122,7 +165,7 @@ def report_markdown(results: dict) -> str:
               for r in results["rgb"]]
     lines += [""] + [f"![rgb {s}](rgb_{s}.png)" for s in dict.fromkeys(r["scene"] for r in results["rgb"])]
     lines += ["", "## The paper's claims", "", "| claim | measured | verdict |", "| --- | --- | --- |"]
-    lines += [f"| {c['claim']} | {c['measured']} | {verdict(c['holds'])} |" for c in results["claims"]]
+    lines += [f"| {c['claim']} | {c['measured']} | {c['verdict']} |" for c in results["claims"]]
     return "\n".join(lines) + "\n"
 
 

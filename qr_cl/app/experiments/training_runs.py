@@ -40,8 +40,7 @@ def train_and_evaluate(plan: Plan, run: TrainingRun, train_paths: list[Path], he
     opacity noise) and evaluate it on the held-out room (features predicted from the room with
     the same noise, scored against the clean room's ground truth; :func:`held_out_scores`)."""
     scenes = [noisy_scene(p, run.noise, seed) if run.noise else p for p in train_paths]
-    name = f"{run.sampler}{run.k}" + (f"-noise{run.noise:g}" if run.noise else "") + (
-        f"-seed{seed + run.seed}" if run.seed else "")
+    name = f"{run.sampler}{run.k}" + (f"-noise{run.noise:g}" if run.noise else "") + f"-seed{seed + run.seed}"
     cfg = TrainConfig(scenes=[str(p) for p in scenes], out=str(out / "runs" / name), steps=plan.steps,
                       views=plan.views, rays=plan.rays, sampler=run.sampler, k=run.k or NOISE_K,
                       seed=seed + run.seed, checkpoint_every=plan.steps)
@@ -56,10 +55,11 @@ def train_and_evaluate(plan: Plan, run: TrainingRun, train_paths: list[Path], he
 
 def baseline_scores(plan: Plan, held: SceneData, gt: np.ndarray, reached: np.ndarray, out: Path, seed: int) -> dict:
     """The per-scene baseline (:func:`qr_cl.app.training.baseline.fit_free_features`: free features fitted
-    on the held-out room itself) with GS-Net's budget through Q-Render K=40, scored like the runs."""
-    cfg = TrainConfig(scenes=[str(held.root)], out=str(out / "runs" / "baseline"), steps=plan.steps,
+    on the held-out room itself) with GS-Net's budget through Q-Render K=40 and training seed
+    ``seed``, scored like the runs."""
+    cfg = TrainConfig(scenes=[str(held.root)], out=str(out / "runs" / f"baseline-seed{seed}"), steps=plan.steps,
                       views=plan.views, rays=plan.rays, sampler="quantile", k=NOISE_K, seed=seed)
     watch = Stopwatch()
     features = fit_free_features(held, cfg)
-    return {"label": f"per-scene baseline, Q-Render K={NOISE_K}", "steps": plan.steps,
+    return {"label": f"per-scene baseline, Q-Render K={NOISE_K}", "steps": plan.steps, "train_seed": seed,
             "train_s": watch.seconds, **held_out_scores(held, features, gt, reached)}

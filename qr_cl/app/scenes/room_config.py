@@ -5,12 +5,16 @@ import hashlib
 import json
 from dataclasses import asdict, dataclass
 
-GENERATOR_VERSION = 4
+GENERATOR_VERSION = 5
 
 STYLES = ("flat", "3dgs")
 
 #: SyntheticConfig fields read by the "3dgs" style only (left out of a flat room's cache key).
 SPLAT_FIELDS = ("layers", "thickness", "opacity_beta", "floater_opacity_beta", "anisotropy")
+
+#: SyntheticConfig fields read by each feature model only (left out of the other's cache key);
+#: the models are described in :mod:`qr_cl.app.scenes.room_features`.
+FEATURE_FIELDS = {"clip": ("clip_offset", "clip_noise"), "orthogonal": ("mask_noise", "text_noise")}
 
 
 @dataclass(frozen=True)
@@ -21,13 +25,17 @@ class SyntheticConfig:
     n_gaussians: int = 24000
     n_objects: int = 7
     n_wall_objects: int = 3
+    n_small_objects: int = 6                       # pillows, books, boxes, TVs and lamps on furniture tops
     n_views: int = 12
     width: int = 160
     height: int = 120
     fov_deg: float = 75.0
     dim: int = 512
-    mask_noise: float = 0.6
-    text_noise: float = 0.3
+    features: str = "clip"                         # "clip": real CLIP anchors; "orthogonal": random prototypes
+    clip_offset: float = 0.5                       # clip: norm of the fixed image/text offset
+    clip_noise: float = 3.75                       # clip: norm of each mask's noise (about 70 % mask accuracy)
+    mask_noise: float = 0.6                        # orthogonal: norm of each mask's noise
+    text_noise: float = 0.3                        # orthogonal: norm of each text feature's noise
     floater_fraction: float = 0.01
     points_per_gaussian: int = 16
     room_size: tuple[float, float, float] = (5.0, 4.0, 2.6)
@@ -42,14 +50,18 @@ class SyntheticConfig:
     def __post_init__(self) -> None:
         if self.style not in STYLES:
             raise ValueError(f"style={self.style!r}: choose one of {STYLES}")
+        if self.features not in FEATURE_FIELDS:
+            raise ValueError(f"features={self.features!r}: choose one of {tuple(FEATURE_FIELDS)}")
 
     def params(self) -> dict:
-        """The parameters the style reads (a flat room's leave out the "3dgs" style's fields, so
-        its cache key and synthetic.json are those of the generator before the style existed)."""
+        """The parameters the style and the feature model read (a flat room's leave out the
+        "3dgs" style's fields; each feature model's leave out the other's)."""
         params = asdict(self)
+        unread = [f for model, fields in FEATURE_FIELDS.items() if model != self.features for f in fields]
         if self.style == "flat":
-            for name in ("style",) + SPLAT_FIELDS:
-                params.pop(name)
+            unread += SPLAT_FIELDS
+        for name in unread:
+            params.pop(name)
         return params
 
     def key(self) -> str:

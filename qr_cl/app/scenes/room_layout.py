@@ -1,5 +1,10 @@
 """The furniture of a synthetic room as open3d meshes (floor, walls, floor-standing and
-wall-mounted objects of ScanNet classes), points sampled on them, and cameras inside the room."""
+wall-mounted objects of ScanNet classes, small objects on furniture tops), points sampled on them,
+and cameras inside the room.
+
+Classes are drawn with weights that follow ScanNet's instance frequencies roughly (chairs the most
+common object, then tables, cabinets, doors; bathtubs and shower curtains rare); walls and floor
+dominate by area."""
 from __future__ import annotations
 
 import math
@@ -9,9 +14,27 @@ import numpy as np
 from ...scene import Camera, look_at
 from .room_config import SyntheticConfig
 
-FLOOR_CLASSES = (3, 4, 5, 6, 7, 10, 12, 14, 24, 33, 34, 36, 35)
+#: floor-standing class id -> relative weight of drawing it.
+FLOOR_CLASSES = {5: 8.0, 7: 3.0, 3: 3.0, 14: 2.0, 6: 1.5, 4: 1.0, 10: 1.0, 35: 1.0, 12: 0.7, 24: 0.5, 33: 0.5,
+                 34: 0.5, 36: 0.3}
 
-WALL_CLASSES = (8, 9, 11, 16, 28)
+#: wall-mounted class id -> relative weight.
+WALL_CLASSES = {8: 3.0, 9: 2.0, 11: 2.0, 16: 1.0, 28: 0.3}
+
+#: small object class id -> (box size (x, y, z) in m, the floor classes it may stand on).
+SMALL_OBJECTS = {18: ((0.5, 0.35, 0.12), (4, 6)), 23: ((0.25, 0.18, 0.2), (7, 14, 10, 3, 12)),
+                 29: ((0.35, 0.3, 0.25), (7, 14, 3, 12)), 25: ((0.8, 0.08, 0.5), (14, 3, 12)),
+                 35: ((0.24, 0.24, 0.45), (7, 14, 3))}
+
+#: floor class id -> height of its top surface, m (what a small object stands on).
+TOP_HEIGHT = {3: 0.9, 4: 0.45, 6: 0.42, 7: 0.77, 10: 1.8, 12: 0.9, 14: 0.76}
+
+
+def _draw(weights: dict[int, float], n: int, rng: np.random.Generator) -> np.ndarray:
+    """``n`` class ids drawn from ``weights`` (with replacement)."""
+    ids = np.array(list(weights))
+    p = np.array(list(weights.values()))
+    return rng.choice(ids, n, p=p / p.sum())
 
 
 def _open3d():
@@ -118,8 +141,8 @@ def room_instances(cfg: SyntheticConfig, rng: np.random.Generator) -> list[tuple
              ((t, d, h), (-t / 2, d / 2, h / 2)), ((t, d, h), (w + t / 2, d / 2, h / 2))]
     inst += [(1, [_box(size, c)]) for size, c in walls]
     placed: list[tuple[float, float, float, float]] = []
-    classes = rng.choice(FLOOR_CLASSES, cfg.n_objects, replace=cfg.n_objects > len(FLOOR_CLASSES))
-    for cls in classes:
+    hosts: list[tuple[int, float, float, float, float, float]] = []     # class, x, y, ex, ey, yaw
+    for cls in _draw(FLOOR_CLASSES, cfg.n_objects, rng):
         for _ in range(200):
             yaw = float(rng.integers(4)) * math.pi / 2
             _, (sx, sy) = _furniture(int(cls), 0, 0, yaw)
@@ -128,10 +151,11 @@ def room_instances(cfg: SyntheticConfig, rng: np.random.Generator) -> list[tuple
             if all(abs(x - px) > (ex + pex) / 2 + 0.15 or abs(y - py) > (ey + pey) / 2 + 0.15
                    for px, py, pex, pey in placed):
                 placed.append((x, y, ex, ey))
+                hosts.append((int(cls), x, y, ex, ey, yaw))
                 inst.append((int(cls), _furniture(int(cls), x, y, yaw)[0]))
                 break
     spans: dict[int, list[tuple[float, float]]] = {i: [] for i in range(4)}
-    for cls in rng.choice(WALL_CLASSES, cfg.n_wall_objects, replace=cfg.n_wall_objects > len(WALL_CLASSES)):
+    for cls in _draw(WALL_CLASSES, cfg.n_wall_objects, rng):
         size = {8: (0.9, 2.0, 0.0), 9: (1.1, 1.0, 1.0), 11: (0.6, 0.45, 1.4), 16: (1.0, 2.1, 0.3),
                 28: (0.9, 1.8, 0.2)}[int(cls)]
         for _ in range(100):
@@ -150,7 +174,30 @@ def room_instances(cfg: SyntheticConfig, rng: np.random.Generator) -> list[tuple
                 mesh = _box((thick, size[0], size[1]), (x, a, zc))
             inst.append((int(cls), [mesh]))
             break
-    return inst
+    return inst + _small_objects(cfg, hosts, rng)
+
+
+def _small_objects(cfg: SyntheticConfig, hosts: list, rng: np.random.Generator) -> list[tuple[int, list]]:
+    """Up to ``cfg.n_small_objects`` small objects (:data:`SMALL_OBJECTS`), each on the top of a
+    placed floor object it may stand on, at a random spot of that top; none where no host fits."""
+    out = []
+    for cls in _draw({c: 1.0 for c in SMALL_OBJECTS}, cfg.n_small_objects, rng):
+        size, on = SMALL_OBJECTS[int(cls)]
+        fitting = [h for h in hosts if h[0] in on]
+        if not fitting:
+            continue
+        host, x, y, ex, ey, yaw = fitting[rng.integers(len(fitting))]
+        top = TOP_HEIGHT[host]
+        dx = rng.uniform(-max(ex - size[0], 0) / 2, max(ex - size[0], 0) / 2)
+        dy = rng.uniform(-max(ey - size[1], 0) / 2, max(ey - size[1], 0) / 2)
+        centre = (x + dx, y + dy, top + size[2] / 2 + 0.005)
+        if int(cls) == 35:      # table lamp: a stem and a shade
+            meshes = [_cylinder(0.02, size[2] * 0.6, (centre[0], centre[1], top + size[2] * 0.3)),
+                      _sphere(size[0] / 2, (centre[0], centre[1], top + size[2] - size[0] / 2))]
+        else:
+            meshes = [_box(size, centre, yaw + float(rng.normal(0, 0.2)))]
+        out.append((int(cls), meshes))
+    return out
 
 
 def room_cameras(cfg: SyntheticConfig, targets: np.ndarray, footprints, rng: np.random.Generator) -> list[Camera]:

@@ -18,10 +18,13 @@ own renderer from the Gaussians' object ids. Two styles of Gaussians (``Syntheti
   cloud: Gaussians inside a shell are far from any surface point in their own Mahalanobis
   metric, so App. B would drop most of them).
 
-"CLIP" features are SIMULATED: each class has a fixed random unit prototype (``dim``-D, seeded);
-a mask's feature is normalize(prototype + ``mask_noise`` * random unit vector) and a class's text
-feature is normalize(prototype + ``text_noise`` * another random unit vector) (the image/text
-gap). Real CLIP features plug in through the same LangSplat files.
+"CLIP" features are SIMULATED from REAL CLIP text embeddings (``SyntheticConfig.features``,
+:mod:`qr_cl.app.scenes.room_features`): each class is anchored on the real CLIP ViT-B/32 text
+embedding of its name, so classes are as confusable as in CLIP (table and desk, wall and
+picture); a mask's feature is its class's anchor plus a fixed image/text offset plus noise
+calibrated so that one mask names its own class about 70 % of the time. ``features="orthogonal"``
+gives the random-prototype rooms of earlier releases. Real CLIP features plug in through the
+same LangSplat files.
 
 Folder written (see :mod:`qr_cl.app.scenes.folders`): point_cloud.ply, cameras.json,
 language_features/<frame>_s.npy [4,H,W] + <frame>_f.npy [M,dim], classes.json,
@@ -43,18 +46,13 @@ import numpy as np
 from ...render import rasterize
 from ...scene import Camera, Gaussians, save_ply
 from ..evaluation.metrics import NYU40_NAMES
-from .procedural import concat, unit
+from .procedural import concat
 from .room_config import GENERATOR_VERSION, SyntheticConfig
+from .room_features import RoomFeatures, mask_accuracy
 from .room_gaussians import flat_gaussians, splat_gaussians
 from .room_layout import room_cameras, room_instances, surface_area
 
 LEVELS = 4            # LangSplat's mask levels (default, s, m, l)
-
-
-def class_prototypes(dim: int, seed: int) -> dict[int, np.ndarray]:
-    """The simulated "CLIP" prototype of every class of :data:`NYU40_NAMES`: unit [dim] float64."""
-    rng = np.random.default_rng(seed)
-    return {c: unit(rng.standard_normal(dim)) for c in sorted(NYU40_NAMES)}
 
 
 def _instance_maps(gaussians: Gaussians, instance: np.ndarray, n_inst: int, cams: list[Camera]) -> list[np.ndarray]:
@@ -98,6 +96,7 @@ def write_scene(out: Path, cfg: SyntheticConfig) -> None:
     areas = np.array([surface_area(m) for _, m in instances])
     n_surface = int(round(cfg.n_gaussians * (1 - cfg.floater_fraction)))
     counts = np.maximum(np.round(n_surface * areas / areas.sum()).astype(int), 16)
+    counts[np.argmax(counts)] -= max(int(counts.sum()) - n_surface, 0)    # small objects' minimum: not the floaters'
     spacing = math.sqrt(areas.sum() / counts.sum())          # of the surface Gaussians, m
     points = None
     if cfg.style == "flat":
@@ -117,10 +116,12 @@ def write_scene(out: Path, cfg: SyntheticConfig) -> None:
     cams = room_cameras(cfg, targets, footprints, rng)
     (out / "cameras.json").write_text(json.dumps([_camera_entry(i, c) for i, c in enumerate(cams)], indent=1))
 
-    protos = class_prototypes(cfg.dim, cfg.prototype_seed)
+    model = RoomFeatures(cfg)
+    text = model.text()
     feat_rng = np.random.default_rng(cfg.seed + 1)
     lang = out / "language_features"
     lang.mkdir()
+    all_feats, all_classes = [], []
     for cam, ids in zip(cams, _instance_maps(gaussians, instance, len(instances), cams)):
         present = [i for i in np.unique(ids) if i >= 0 and (ids == i).sum() >= 20]
         rows = np.full(len(instances) + 1, -1, np.int32)
@@ -129,21 +130,22 @@ def write_scene(out: Path, cfg: SyntheticConfig) -> None:
         # LangSplat's layout: LEVELS mask levels, level j's ids offset by j * masks, and a
         # distinct simulated CLIP feature for each level's mask
         segs = np.stack([np.where(seg >= 0, seg + j * len(present), -1) for j in range(LEVELS)])
-        feats = np.stack([unit(protos[classes[i]] + cfg.mask_noise * unit(feat_rng.standard_normal(cfg.dim)))
-                          for _ in range(LEVELS) for i in present]) if present else np.zeros((0, cfg.dim))
+        mask_classes = np.tile(classes[present], LEVELS) if present else np.zeros(0, np.int64)
+        feats = model.masks(mask_classes, feat_rng)
+        all_feats.append(feats)
+        all_classes.append(mask_classes)
         np.save(lang / f"{cam.name}_s.npy", segs.astype(np.int32))
-        np.save(lang / f"{cam.name}_f.npy", feats.astype(np.float32))
+        np.save(lang / f"{cam.name}_f.npy", feats)
 
-    text_rng = np.random.default_rng(cfg.prototype_seed + 1)
-    table = [{"id": c, "name": NYU40_NAMES[c],
-              "text_feature": unit(protos[c] + cfg.text_noise * unit(text_rng.standard_normal(cfg.dim))).tolist()}
-             for c in sorted(NYU40_NAMES)]
+    table = [{"id": c, "name": NYU40_NAMES[c], "text_feature": text[c].tolist()} for c in sorted(NYU40_NAMES)]
     (out / "classes.json").write_text(json.dumps({"feature_dim": cfg.dim, "classes": table}))
+    accuracy = mask_accuracy(np.concatenate(all_feats), np.concatenate(all_classes), text)
     (out / "labels").mkdir()
     np.save(out / "labels" / "gaussian_labels.npy", labels)
     if points is not None:
         write_labelled_points(out / "labels" / "points.ply", points, point_labels)
-    (out / "synthetic.json").write_text(json.dumps({"generator_version": GENERATOR_VERSION, **cfg.params()}, indent=1))
+    (out / "synthetic.json").write_text(json.dumps({"generator_version": GENERATOR_VERSION, **cfg.params(),
+                                                    "mask_accuracy19": accuracy}, indent=1))
 
 
 def default_cache() -> Path:

@@ -60,3 +60,22 @@ def layered_view(depth: int, width: int, height: int) -> SceneView:
                   np.full(depth, min(0.5, 5.0 / depth), np.float32), np.zeros((depth, 1, 3), np.float32))
     cam = look_at([0, 0, 0], [0, 0, 1], [0, -1, 0], width, width, width, height)
     return SceneView(f"layers-{depth}", g, cam)
+
+
+def room_overview_cameras(gaussians: Gaussians, width: int = 320, height: int = 240, n: int = 2,
+                          fov_x_deg: float = 60.0) -> list[Camera]:
+    """``n`` (<= 4) cameras that show a z-up room without a ceiling whole, nearly from above:
+    over the box of the Gaussians' 2nd..98th percentile centres by 0.9 times its larger floor
+    side, shifted from its centre by half its depth (and 15 % of its width) towards a side, each
+    looks at the floor's centre 0.3 m up: the floor, the furniture and the inner faces of the
+    walls are in view. Sides in the order -y, +y, -x, +x."""
+    lo, hi = np.percentile(gaussians.means, 2, axis=0), np.percentile(gaussians.means, 98, axis=0)
+    centre, size = (lo + hi) / 2, hi - lo
+    fx = 0.5 * width / np.tan(np.radians(fov_x_deg) / 2)
+    target = np.array([centre[0], centre[1], lo[2] + 0.3])
+    shifts = ((-0.15, -0.5), (0.15, 0.5), (-0.5, 0.15), (0.5, -0.15))
+    cams = []
+    for i, (sx, sy) in enumerate(shifts[:n]):
+        eye = np.array([centre[0] + sx * size[0], centre[1] + sy * size[1], hi[2] + 0.9 * max(size[0], size[1])])
+        cams.append(look_at(eye, target, (0, 0, 1), fx, fx, width, height, f"overview_{i}"))
+    return cams

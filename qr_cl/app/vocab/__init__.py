@@ -17,7 +17,7 @@ from importlib import resources
 import numpy as np
 
 #: Names of the ScanNet evaluation classes that the table spells differently.
-ALIASES = {"sofa": "couch"}
+ALIASES = {"sofa": "couch", "books": "book", "television": "tv"}
 
 
 @lru_cache(maxsize=None)
