@@ -9,6 +9,7 @@ outside the subset are ignored (:data:`qr_cl.app.evaluation.labels.MIN_OPACITY`)
 from __future__ import annotations
 
 import argparse
+import difflib
 import json
 from pathlib import Path
 
@@ -53,6 +54,10 @@ def run(args: argparse.Namespace) -> int:
     rows = []
     for path in tqdm(args.scenes, desc="eval", unit="scene"):
         scene = load_scene_folder(path, args.level)
+        if args.query and scene.classes is not None and args.query not in scene.classes.names:
+            close = difflib.get_close_matches(args.query, scene.classes.names, n=3, cutoff=0.5)
+            raise SystemExit(f"qr-cl eval: --query {args.query!r} is not a class of {scene.root / 'classes.json'}"
+                             f" (closest: {', '.join(close) if close else 'none'})")
         with torch_threads(1):
             feats = network_features(ckpt, scene) if ckpt is not None else np.load(args.features).astype(np.float32)
         gt, source = ground_truth(scene, args.gt, args.knn, args.max_mahalanobis)

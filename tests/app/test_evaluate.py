@@ -116,7 +116,7 @@ def test_eval_command_writes_tables_images_and_ply(scene, tmp_path, capsys):
 
 def test_tiny_demo_writes_the_report(tmp_path, capsys):
     args = ["demo", "--out", str(tmp_path / "demo"), "--cache", str(tmp_path / "cache"), "--train-scenes", "1",
-            "--gaussians", "2500", "--steps", "3", "--short-steps", "2", "--rays", "64", "--views", "1"]
+            "--gaussians", "6000", "--steps", "3", "--short-steps", "2", "--rays", "64", "--views", "1"]
     assert main(args) == 0
     out = capsys.readouterr().out
     assert "Report:" in out
@@ -133,3 +133,12 @@ def test_tiny_demo_writes_the_report(tmp_path, capsys):
     assert len(res["rows"]) == 14 and all(0 <= r["metrics"]["19"]["macc"] <= 1 for r in res["rows"])
     assert all(0 <= r["reached"]["macc"] <= 1 for r in res["rows"])
     assert (tmp_path / "demo" / "runs" / "gsnet-q40" / "checkpoint.pt").is_file()
+
+
+def test_eval_refuses_an_unknown_query_before_any_work(scene, tmp_path):
+    data = load_scene_folder(scene)
+    np.save(tmp_path / "f.npy", np.zeros((len(data.gaussians), data.feature_dim), np.float32))
+    with pytest.raises(SystemExit, match="'tabel' is not a class of .*classes.json.*closest: table"):
+        main(["eval", str(scene), "--features", str(tmp_path / "f.npy"), "--out", str(tmp_path / "o"),
+              "--query", "tabel"])
+    assert not (tmp_path / "o" / "images").exists()

@@ -69,3 +69,11 @@ def test_a_room_records_its_measured_mask_accuracy(tmp_path):
     desk = next(c for c in classes if c["name"] == "desk")
     assert np.allclose(desk["text_feature"], clip_anchors(512, 0)[14], atol=1e-6)
     assert 0.4 < meta["mask_accuracy19"] < 0.95           # a few hundred masks around the calibrated 70 %
+
+
+def test_the_image_text_offset_favours_no_class():
+    model = RoomFeatures(SyntheticConfig())
+    assert np.linalg.norm(model.offset) == pytest.approx(0.5)
+    assert max(abs(model.offset @ a) for a in model.anchors.values()) < 1e-9
+    tiny = RoomFeatures(SyntheticConfig(dim=16))         # fewer channels than classes: offset as drawn
+    assert np.isfinite(tiny.offset).all() and np.linalg.norm(tiny.offset) == pytest.approx(0.5)
