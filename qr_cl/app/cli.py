@@ -24,7 +24,9 @@ DELEGATED = {"demo": ("demo", "the embedded default job (see README)"),
              "bench": ("benchmark", "kernel benchmark sweeps: JSON, markdown summary and plots"),
              "train": ("train", "train GS-Net through a feature renderer on scene folders"),
              "eval": ("evaluate", "open-vocabulary 3D segmentation: mIoU/mAcc tables, images, PLYs"),
-             "reproduce": ("reproduce", "the paper's controlled experiments on 3DGS-like rooms: report and plots")}
+             "reproduce": ("reproduce", "the paper's controlled experiments on 3DGS-like rooms: report and plots"),
+             "query": ("query.command", "where is some text in a scene: relevancy per Gaussian, heatmaps, PLYs"),
+             "view": ("viewer.command", "a web viewer on localhost rendering the scene on the CPU")}
 
 
 def _cmd_devices(args: argparse.Namespace) -> int:

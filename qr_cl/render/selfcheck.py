@@ -115,7 +115,8 @@ def checked_runtime() -> Runtime:
         return rt
     _PASSED.add(id(rt))                    # the check's own renders run on this runtime
     try:
-        failures = render_check()
+        with torch.enable_grad():          # it may be first reached under no_grad or in a Function's forward
+            failures = render_check()
     except BaseException:
         _PASSED.discard(id(rt))
         raise
