@@ -5,7 +5,7 @@ import hashlib
 import json
 from dataclasses import asdict, dataclass
 
-GENERATOR_VERSION = 5
+GENERATOR_VERSION = 6
 
 STYLES = ("flat", "3dgs")
 
