@@ -20,17 +20,12 @@ from qr_cl.app.query.relevancy import CANONICAL_PHRASES, negatives, relevancy
 from qr_cl.app.query.scene import read_features
 from qr_cl.app.query.text import (ENCODER, SCENE_CLASSES, SHIPPED_TABLE, QueryError, TextLookup,
                                   UnknownQueryError, open_clip_encoder)
-from qr_cl.app.scenes.folders import ClassTable, SceneDataError, load_scene_folder
+from qr_cl.app.scenes.folders import ClassTable, SceneDataError, load_scene_folder, unit_rows
 from qr_cl.app.scenes.room_features import RoomFeatures
 from qr_cl.app.vocab import scannet200
 from qr_cl.scene import load_ply
 from tests.app.query_helpers import tiny_checkpoint, top_purity
 from tests.synthetic_helpers import tiny_config
-
-
-def _unit(a):
-    a = np.asarray(a, np.float32)
-    return a / np.linalg.norm(a, axis=-1, keepdims=True)
 
 
 def _table_rows(*names):
@@ -53,8 +48,8 @@ class StubEncoder:
 
 def test_relevancy_is_the_minimum_pairwise_softmax():
     rng = np.random.default_rng(0)
-    f, q = _unit(rng.standard_normal((50, 16))), _unit(rng.standard_normal(16))
-    neg = _unit(rng.standard_normal((4, 16)))
+    f, q = unit_rows(rng.standard_normal((50, 16))), unit_rows(rng.standard_normal(16))
+    neg = unit_rows(rng.standard_normal((4, 16)))
     s_q, s_n = f @ q, f @ neg.T
     pairwise = np.exp(s_q[:, None] / 0.1) / (np.exp(s_q[:, None] / 0.1) + np.exp(s_n / 0.1))
     assert np.allclose(relevancy(f, q, neg), pairwise.min(1), atol=1e-6)
@@ -75,7 +70,7 @@ def test_lookup_order_aliases_and_near_matches():
     assert "--clip-weights" in str(err.value)
     with pytest.raises(QueryError, match="empty"):
         lookup("  ")
-    simulated = ClassTable(classes.ids, classes.names, _unit(np.random.default_rng(0).standard_normal((3, 512))))
+    simulated = ClassTable(classes.ids, classes.names, unit_rows(np.random.default_rng(0).standard_normal((3, 512))))
     with pytest.raises(UnknownQueryError):                           # simulated text: the table does not apply
         TextLookup(512, simulated)("office chair")
     with pytest.raises(UnknownQueryError):
@@ -85,9 +80,9 @@ def test_lookup_order_aliases_and_near_matches():
 
 def test_encoder_texts_and_negatives():
     dim = 8
-    seat = _unit(np.arange(1, dim + 1, dtype=np.float32))
+    seat = unit_rows(np.arange(1, dim + 1, dtype=np.float32))
     encoder = StubEncoder({"something to sit on": seat}, dim)
-    classes = ClassTable(np.array([1, 2]), ["wall", "floor"], _unit(np.eye(dim)[:2]))
+    classes = ClassTable(np.array([1, 2]), ["wall", "floor"], unit_rows(np.eye(dim)[:2]))
     lookup = TextLookup(dim, classes, encoder)
     got = lookup("something to sit on")
     assert got.source == ENCODER and np.allclose(got.embedding, seat, atol=1e-6)

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..scenes.folders import unit_rows
 from .text import TextEmbedding, TextLookup
 
 #: The negative phrases of LERF and LangSplat's relevancy (used with a text encoder).
@@ -25,12 +26,6 @@ TEMPERATURE = 0.1
 METHODS = ("relevancy", "cosine")
 #: Negatives closer than this cosine to the query are the query itself and are left out.
 SAME_TEXT_COSINE = 0.9999
-
-
-def unit_rows(features: np.ndarray) -> np.ndarray:
-    """features [N,C] scaled to unit rows (float32; zero rows stay zero)."""
-    f = np.asarray(features, np.float32)
-    return f / np.maximum(np.linalg.norm(f, axis=1, keepdims=True), 1e-12)
 
 
 def negatives(lookup: TextLookup, query: TextEmbedding) -> np.ndarray:

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..scenes.folders import ClassTable
+from ..scenes.folders import ClassTable, unit_rows
 from ..vocab import ALIASES, scannet200
 
 #: A text encoder: Q texts -> [Q, C] float embeddings (any norm; rows are normalised here).
@@ -60,11 +60,6 @@ def normalise(text: str) -> str:
     return " ".join(text.lower().split())
 
 
-def _unit(rows: np.ndarray) -> np.ndarray:
-    rows = np.asarray(rows, np.float32)
-    return rows / np.maximum(np.linalg.norm(rows, axis=-1, keepdims=True), 1e-12)
-
-
 class TextLookup:
     """Looks query texts up for features of ``dim`` channels: the scene's ``classes`` (or None),
     the shipped ScanNet200 table (512-D features only), then ``encoder`` (or None)."""
@@ -93,7 +88,7 @@ class TextLookup:
         if not shared:
             return True
         rows, table_rows = zip(*shared)
-        agree = np.sum(_unit(self.classes.text_features[list(rows)]) * table[list(table_rows)], 1)
+        agree = np.sum(unit_rows(self.classes.text_features[list(rows)]) * table[list(table_rows)], 1)
         return bool(agree.mean() >= SAME_SPACE_COSINE)
 
     def known_names(self) -> list[str]:
@@ -113,7 +108,7 @@ class TextLookup:
         keys = self._keys(text)
         for key in keys:
             if key in self._scene:
-                return TextEmbedding(text, _unit(self.classes.text_features[self._scene[key]]), SCENE_CLASSES)
+                return TextEmbedding(text, unit_rows(self.classes.text_features[self._scene[key]]), SCENE_CLASSES)
         for key in keys:
             if key in self._table_index:
                 return TextEmbedding(text, self._table[self._table_index[key]], SHIPPED_TABLE)
@@ -140,13 +135,13 @@ class TextLookup:
         if rows.shape != (len(texts), self.dim):
             raise QueryError(f"the text encoder returned {rows.shape} embeddings for {len(texts)} texts; "
                              f"the scene's features are {self.dim}-D")
-        return _unit(rows)
+        return unit_rows(rows)
 
     def vocabulary(self) -> np.ndarray:
         """[K, dim] unit rows of the class vocabulary: the scene's classes when it has a
         classes.json, else the shipped table (empty [0, dim] when neither applies)."""
         if self.classes is not None:
-            return _unit(self.classes.text_features)
+            return unit_rows(self.classes.text_features)
         if self._table is not None:
             return self._table
         return np.zeros((0, self.dim), np.float32)

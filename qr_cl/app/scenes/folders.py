@@ -82,8 +82,10 @@ class SceneData:
         return self.frames[0].features.shape[1] if self.frames else 0
 
 
-def _unit_rows(a: np.ndarray) -> np.ndarray:
-    return (a / np.maximum(np.linalg.norm(a, axis=1, keepdims=True), 1e-12)).astype(np.float32)
+def unit_rows(a: np.ndarray) -> np.ndarray:
+    """``a`` [..., C] scaled to unit rows along its last axis, float32 (zero rows stay zero)."""
+    a = np.asarray(a, np.float32)
+    return a / np.maximum(np.linalg.norm(a, axis=-1, keepdims=True), 1e-12)
 
 
 def _load_npy(path: Path, frame: str) -> np.ndarray:
@@ -126,7 +128,7 @@ def _load_frame(folder: Path, cam: Camera, level: int) -> Frame:
         raise SceneDataError(f"{s_path}: frame {name!r}: mask ids range over [{lo}, {hi}] but {f_path.name} "
                              f"has {len(feats)} rows (valid ids are -1..{len(feats) - 1})")
     start, end = level_rows(seg, level, len(feats))
-    return Frame(name, cam, np.where(masks >= 0, masks - start, -1).astype(np.int32), _unit_rows(feats[start:end]))
+    return Frame(name, cam, np.where(masks >= 0, masks - start, -1).astype(np.int32), unit_rows(feats[start:end]))
 
 
 def level_rows(seg: np.ndarray, level: int, n_rows: int) -> tuple[int, int]:
@@ -161,7 +163,7 @@ def _load_classes(path: Path, dim: int | None) -> ClassTable:
             want = dim if dim is not None else len(feats[0])
             raise SceneDataError(f"{path}: class {names[i]!r} has a text feature of shape {f.shape}; the "
                                  f"language features are {want}-D")
-    return ClassTable(ids, names, _unit_rows(np.stack(feats)) if feats else np.zeros((0, dim or 0), np.float32))
+    return ClassTable(ids, names, unit_rows(np.stack(feats)) if feats else np.zeros((0, dim or 0), np.float32))
 
 
 def read_labelled_points(path: Path) -> tuple[np.ndarray, np.ndarray]:
