@@ -5,7 +5,10 @@
 1. Target images: the capture (a 3DGS PLY) rendered with qr-cl's V-Render from orbit views.
 2. Fit: a few thousand Gaussians (a random subset of the capture's centres, grey, isotropic) are
    optimised with Adam through ``qr_cl.rasterization`` (gsplat's interface; gradients w.r.t.
-   means, quats, scales, opacities and colours) against the target images.
+   means, quats, scales, opacities and colours) against the target images, densified as gsplat's
+   DefaultStrategy does (:class:`Densifier`: the screen-space gradients ``meta["means2d"].grad``
+   accumulated per Gaussian; the small ones of large gradient cloned, the large ones split, the
+   transparent ones pruned; ``--no-densify`` turns it off).
 3. Semantics: the capture's Gaussians are clustered by colour (k-means) into "parts"; per view a
    mask map of the dominant part is rendered from the capture, and every mask gets a simulated
    512-D "CLIP" feature (its part's random prototype plus noise), written in LangSplat's layout
@@ -23,6 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import warnings
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -35,6 +39,7 @@ from qr_cl.app.scenes.folders import load_scene_folder
 from qr_cl.app.training.config import TrainConfig
 from qr_cl.app.training.network import network_features
 from qr_cl.app.training.trainer import train
+from qr_cl.scene.gaussians import quat_to_rotmat
 
 DEFAULT_PLY = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "wakufactory-fox" / "fox.ply"
 FEATURE_DIM = 512
@@ -58,10 +63,98 @@ def gaussians(params: dict[str, torch.Tensor]) -> qr_cl.Gaussians:
                                         params["colours"].clamp(0, 1).numpy())
 
 
+@dataclass
+class Densifier:
+    """Growing and pruning in the manner of gsplat's DefaultStrategy, driven by the 2-D means'
+    gradients that ``qr_cl.rasterization`` leaves in ``meta["means2d"].grad`` (packed meta).
+
+    After each backward the norm of each visible Gaussian's screen-space gradient (in NDC units,
+    scaled by the number of cameras, as gsplat) is added up with a count. Every ``every`` steps
+    from ``start`` to ``stop``, Gaussians whose mean gradient exceeds ``grad2d`` grow: cloned
+    where their largest scale is below ``scale3d`` of the scene's extent, else split in two
+    (positions drawn from the Gaussian, scales / 1.6); then those with opacity below ``opacity``
+    are pruned. New rows start with zero Adam moments. ``history`` records (step, cloned, split,
+    pruned, N) per refinement.
+    """
+
+    extent: float
+    grad2d: float = 5e-5
+    scale3d: float = 0.03
+    opacity: float = 0.05
+    start: int = 50
+    stop: int = 250
+    every: int = 25
+    seed: int = 0
+    history: list = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self.grad_sum: torch.Tensor | None = None
+        self.count: torch.Tensor | None = None
+        self.rng = torch.Generator().manual_seed(self.seed)
+
+    def before_backward(self, meta: dict) -> None:
+        """Keep the gradient of rasterization's meta["means2d"] (a non-leaf tensor)."""
+        meta["means2d"].retain_grad()
+
+    def after_backward(self, step: int, meta: dict, params: dict[str, torch.Tensor],
+                       opt: torch.optim.Optimizer) -> None:
+        """Add this step's screen-space gradients (packed meta) and refine when it is time;
+        ``params`` (name -> [N, ...] leaf) and ``opt`` (one param group per parameter) are
+        replaced in place."""
+        n = len(params["means"])
+        if self.grad_sum is None or len(self.grad_sum) != n:
+            self.grad_sum, self.count = torch.zeros(n), torch.zeros(n)
+        grad = meta["means2d"].grad.clone()
+        grad[:, 0] *= meta["width"] / 2 * meta["n_cameras"]
+        grad[:, 1] *= meta["height"] / 2 * meta["n_cameras"]
+        self.grad_sum.index_add_(0, meta["gaussian_ids"], grad.norm(dim=-1))
+        self.count.index_add_(0, meta["gaussian_ids"], torch.ones(len(grad)))
+        if self.start <= step < self.stop and step % self.every == 0 and step > 0:
+            self.refine(step, params, opt)
+
+    @torch.no_grad()
+    def refine(self, step: int, params: dict[str, torch.Tensor], opt: torch.optim.Optimizer) -> None:
+        """Clone, split, then prune (see the class), and restart the gradient statistics."""
+        grow = self.grad_sum / self.count.clamp_min(1) > self.grad2d
+        large = params["log_scales"].exp().max(1).values > self.scale3d * self.extent
+        clone, split = grow & ~large, grow & large
+        rows = {key: p.detach() for key, p in params.items()}
+        scales = rows["log_scales"][split].exp()
+        quats = rows["quats"][split] / rows["quats"][split].norm(dim=1, keepdim=True)
+        offsets = torch.einsum("nij,nj,bnj->bni", quat_to_rotmat(quats), scales,
+                               torch.randn(2, len(scales), 3, generator=self.rng))
+        added = {key: torch.cat([x[clone], x[split].repeat(2, *[1] * (x.ndim - 1))]) for key, x in rows.items()}
+        n_clone = int(clone.sum())
+        added["means"][n_clone:] += offsets.reshape(-1, 3)
+        added["log_scales"][n_clone:] -= float(np.log(1.6))
+        keep = ~split
+        self._rebuild(params, opt, lambda x, new: torch.cat([x[keep], new]), added)
+        pruned = torch.sigmoid(params["logit_opacities"].detach()) < self.opacity
+        self._rebuild(params, opt, lambda x, new: x[~pruned], None)
+        self.history.append((step, int(clone.sum()), int(split.sum()), int(pruned.sum()), len(params["means"])))
+        self.grad_sum, self.count = None, None
+
+    @staticmethod
+    def _rebuild(params: dict[str, torch.Tensor], opt: torch.optim.Optimizer, rows, added: dict | None) -> None:
+        """Replace every parameter by rows(old, new rows) and its Adam moments alike (new rows 0)."""
+        for group in opt.param_groups:
+            old = group["params"][0]
+            key = next(k for k, p in params.items() if p is old)
+            new_rows = None if added is None else added[key]
+            param = rows(old.detach(), new_rows).requires_grad_(True)
+            state = opt.state.pop(old, {})
+            for moment in ("exp_avg", "exp_avg_sq"):
+                if moment in state:
+                    state[moment] = rows(state[moment], None if new_rows is None else torch.zeros_like(new_rows))
+            group["params"][0], params[key] = param, param
+            opt.state[param] = state
+
+
 def fit(capture: qr_cl.Gaussians, cameras: list, targets: torch.Tensor, n: int, steps: int,
-        seed: int) -> tuple[qr_cl.Gaussians, qr_cl.Gaussians, list[float]]:
+        seed: int, densify: bool = True) -> tuple[qr_cl.Gaussians, qr_cl.Gaussians, list[float], Densifier | None]:
     """``n`` Gaussians fitted to ``targets`` by Adam through qr_cl.rasterization (two views per
-    step); returns them before and after the fit, and the PSNR (dB) of every step."""
+    step), densified by a :class:`Densifier` (refining until 5/6 of the steps) when ``densify``;
+    returns them before and after the fit, the PSNR (dB) of every step and the densifier."""
     rng = np.random.default_rng(seed)
     start = capture.means[rng.choice(len(capture), n, replace=False)]
     extent = np.percentile(capture.means, 98, 0) - np.percentile(capture.means, 2, 0)
@@ -73,6 +166,7 @@ def fit(capture: qr_cl.Gaussians, cameras: list, targets: torch.Tensor, n: int, 
     rates = {"means": 2e-3 * float(extent.mean()), "quats": 1e-2, "log_scales": 1e-2, "logit_opacities": 5e-2,
              "colours": 2e-2}
     opt = torch.optim.Adam([{"params": [p], "lr": rates[k]} for k, p in params.items()])
+    densifier = Densifier(float(extent.mean()), stop=steps * 5 // 6, seed=seed) if densify else None
     viewmats = torch.from_numpy(np.stack([c.viewmat for c in cameras]))
     Ks = torch.from_numpy(np.stack([c.K for c in cameras]).astype(np.float32))
     w, h = cameras[0].width, cameras[0].height
@@ -81,16 +175,20 @@ def fit(capture: qr_cl.Gaussians, cameras: list, targets: torch.Tensor, n: int, 
     bar = tqdm(range(steps), desc="fit", unit="step")
     for step in bar:
         views = rng.choice(len(cameras), 2, replace=False)
-        image, _, _ = qr_cl.rasterization(params["means"], params["quats"], params["log_scales"].exp(),
-                                          torch.sigmoid(params["logit_opacities"]), params["colours"],
-                                          viewmats[views], Ks[views], w, h)
+        image, _, meta = qr_cl.rasterization(params["means"], params["quats"], params["log_scales"].exp(),
+                                             torch.sigmoid(params["logit_opacities"]), params["colours"],
+                                             viewmats[views], Ks[views], w, h)
         loss = ((image - targets[views]) ** 2).mean()
         opt.zero_grad()
+        if densifier:
+            densifier.before_backward(meta)
         loss.backward()
+        if densifier:
+            densifier.after_backward(step, meta, params, opt)
         opt.step()
         psnr.append(float(-10 * torch.log10(loss.detach())))
-        bar.set_postfix(psnr=f"{psnr[-1]:.1f} dB")
-    return initial, gaussians(params), psnr
+        bar.set_postfix(psnr=f"{psnr[-1]:.1f} dB", gaussians=len(params["means"]))
+    return initial, gaussians(params), psnr, densifier
 
 
 def colour_parts(capture: qr_cl.Gaussians, parts: int, seed: int) -> np.ndarray:
@@ -161,6 +259,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("fit-and-train"))
     parser.add_argument("--gaussians", type=int, default=3000, help="Gaussians to fit")
     parser.add_argument("--fit-steps", type=int, default=300)
+    parser.add_argument("--no-densify", action="store_true", help="fit without growing and pruning")
     parser.add_argument("--train-steps", type=int, default=100)
     parser.add_argument("--views", type=int, default=8)
     parser.add_argument("--width", type=int, default=128)
@@ -176,7 +275,8 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
 
     targets = target_images(capture, cameras)
-    initial, fitted, psnr = fit(capture, cameras, targets, args.gaussians, args.fit_steps, args.seed)
+    initial, fitted, psnr, densifier = fit(capture, cameras, targets, args.gaussians, args.fit_steps, args.seed,
+                                           densify=not args.no_densify)
     before, after = target_images(initial, cameras), target_images(fitted, cameras)
     before_psnr, after_psnr = (float(-10 * torch.log10(((x - targets) ** 2).mean())) for x in (before, after))
     print(f"fit: {len(fitted)} Gaussians, PSNR over all {len(cameras)} views {before_psnr:.1f} dB before -> "

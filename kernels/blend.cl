@@ -141,7 +141,8 @@ __kernel void blend_backward_alpha(const int n_rays, const int full, const int w
    sigma = 0.5 (A dx^2 + C dy^2) + B dx dy with (dx, dy) = mean2d - pixel centre, so
    dL/dsigma = -alpha dL/dalpha, dsigma/dmean2d = (A dx + B dy, B dx + C dy) and
    dsigma/d(A, B, C) = (dx^2 / 2, dx dy, dy^2 / 2). d_splats[g] = (d mean2d x, y, d A, B, C,
-   d opacity, 0, 0). One work-item per Gaussian. */
+   d opacity, |d mean2d x|, |d mean2d y|): the last two sum the absolute value of each entry's
+   (each pixel's) term, gsplat's "absgrad". One work-item per Gaussian. */
 __kernel void splat_backward(const int n, const int n_chunks, __global const int *cursor,
                              __global const int *t_ray, __global const int *t_entry,
                              __global const float *d_alpha, __global const float8 *splats,
@@ -159,8 +160,9 @@ __kernel void splat_backward(const int n, const int n_chunks, __global const int
         const float e = exp(-splat_sigma(s.s2, s.s3, s.s4, dx, dy)), raw = s.s5 * e;
         if (!(raw <= ALPHA_MAX)) continue;           /* clamped: alpha does not move */
         const float da = d_alpha[t_entry[j]], dsig = -da * raw;
-        d.s0 += dsig * (s.s2 * dx + s.s3 * dy);
-        d.s1 += dsig * (s.s3 * dx + s.s4 * dy);
+        const float2 dm = dsig * (float2)(s.s2 * dx + s.s3 * dy, s.s3 * dx + s.s4 * dy);
+        d.s01 += dm;
+        d.s67 += fabs(dm);
         d.s2 += dsig * 0.5f * dx * dx;
         d.s3 += dsig * dx * dy;
         d.s4 += dsig * 0.5f * dy * dy;

@@ -5,7 +5,7 @@
 #include "common.h"
 
 /* The largest radius stored in radii (px): a float beyond INT_MAX has no defined int value
-   (INT_MIN on x86, saturated on GPUs), so the radius is clamped in float first. Same bound as
+   (INT_MIN on x86, saturated on GPUs), so the radii are clamped in float first. Same bound as
    RADIUS_MAX in qr_cl/stages/project_ref.py. */
 #define RADIUS_MAX 1073741824.f
 
@@ -130,9 +130,11 @@ static inline int touched_tiles(float8 s, int4 rect, int tiles_x, ushort *rows) 
 }
 
 /* Outputs per Gaussian: splat = (mean2d.x, mean2d.y, conic a, b, c, opacity, depth, sigma_max),
-   radius in pixels (0 = culled), footprint (common.h: the tile rectangle [x0, y0, x1, y1) and its
-   rows' tile spans), tiles touched (the tiles of those spans) and its depth key (the bits of its
-   positive float depth, which order as the depths do; INT_MAX, past all of them, when culled).
+   radii (x, y) in pixels (the half-sides of the opacity-aware box it is binned within, at most
+   the 3-sigma radius; (0, 0) = culled), footprint (common.h: the tile rectangle [x0, y0, x1, y1)
+   and its rows' tile spans), tiles touched (the tiles of those spans) and its depth key (the bits
+   of its positive float depth, which order as the depths do; INT_MAX, past all of them, when
+   culled).
    Work-item g projects the Gaussians [g TILE, (g + 1) TILE). */
 __kernel void project(const int n,
                       __global const float *means,      /* [N,3] world */
@@ -143,7 +145,7 @@ __kernel void project(const int n,
                       const float fx, const float fy, const float cx, const float cy,
                       const int width, const int height, const float near, const float far,
                       const int tiles_x, const int tiles_y,
-                      __global float8 *splats, __global int *radii,
+                      __global float8 *splats, __global int2 *radii,
                       __global int16 *footprints, __global int *tiles_touched,
                       __global int *depth_keys) {
     const int i0 = get_global_id(0) * TILE;
@@ -188,14 +190,14 @@ __kernel void project(const int n,
         const int touched = LANE_I(visible, l) ? touched_tiles(splat, rect, tiles_x, rows) : 0;
         if (touched <= 0) {
             splats[i] = (float8)(0.f);
-            radii[i] = 0;
+            radii[i] = (int2)(0);
             footprints[i] = (int16)(0);
             tiles_touched[i] = 0;
             depth_keys[i] = INT_MAX;
             continue;
         }
         splats[i] = splat;
-        radii[i] = (int)fmin(LANE(radius, l), RADIUS_MAX);
+        radii[i] = (int2)((int)fmin(LANE(ext_x, l), RADIUS_MAX), (int)fmin(LANE(ext_y, l), RADIUS_MAX));
         __global int *footprint = (__global int *)(footprints + i);
         vstore4(rect, 0, footprint);
         for (int k = 0; k < SPAN_ROWS / 8; k++) vstore8(vload8(k, rows), k, (__global ushort *)(footprint + 4));
@@ -204,23 +206,24 @@ __kernel void project(const int n,
     }
 }
 
-/* The backward of Gaussian i (project_backward) from its EWA terms e. */
-static inline void gaussian_backward(int i, const ewa1_t *e_, __global const float *scales,
-                                     __global const float *quats, __global const float *viewmat,
-                                     float fx, float fy, __global const int *radii,
-                                     __global const float8 *d_splats, __global float *d_means,
-                                     __global float4 *d_quats, __global float *d_scales,
-                                     __global float *d_opacities) {
+/* The backward of Gaussian i (project_backward) from its EWA terms e; d_views[i] its share of the
+   viewmat's gradient when view_grads. */
+static inline void gaussian_backward(int i, const ewa1_t *e_, __global const float *means,
+                                     __global const float *scales, __global const float *quats,
+                                     __global const float *viewmat, float fx, float fy,
+                                     __global const int2 *radii, __global const float8 *d_splats,
+                                     __global float *d_means, __global float4 *d_quats,
+                                     __global float *d_scales, const int view_grads, __global float *d_views) {
     vstore3((float3)(0.f), i, d_means);
     vstore3((float3)(0.f), i, d_scales);
     d_quats[i] = (float4)(0.f);
-    d_opacities[i] = 0.f;
-    if (radii[i] == 0) return;
+    if (view_grads)
+        for (int k = 0; k < 12; k++) d_views[12 * i + k] = 0.f;
+    if (radii[i].x == 0) return;
     const float3 sc = vload3(i, scales);
     const float4 q = vload4(i, quats);
     const ewa1_t e = *e_;
     const float8 d = d_splats[i];
-    d_opacities[i] = d.s5;
 
     /* conic (A, B, C) = inverse of [[a, b], [b, c]] -> d (a, b, c) */
     const float det = e.c.x * e.c.z - e.c.y * e.c.y;
@@ -270,41 +273,61 @@ static inline void gaussian_backward(int i, const ewa1_t *e_, __global const flo
             + qx * dr[6] + qy * dr[7]);
 
     /* J = [[fx / z, 0, -fx tx / z^2], [0, fy / z, -fy ty / z^2]], t = z clamp(x / z) (= x unclamped),
-       and mean2d -> d p */
+       mean2d and the depth z -> d p */
     const float3 p = e.p;
     const float z2 = p.z * p.z, tx = -e.j.y * z2 / fx, ty = -e.j.w * z2 / fy;
     const float dtx = -dJ0.z * fx / z2, dty = -dJ1.z * fy / z2;
     float3 dp = (float3)(d.s0 * fx / p.z, d.s1 * fy / p.z,
-                         -dJ0.x * fx / z2 + 2.f * dJ0.z * fx * tx / (z2 * p.z) - dJ1.y * fy / z2
+                         d.s6 - dJ0.x * fx / z2 + 2.f * dJ0.z * fx * tx / (z2 * p.z) - dJ1.y * fy / z2
                          + 2.f * dJ1.z * fy * ty / (z2 * p.z) - (d.s0 * fx * p.x + d.s1 * fy * p.y) / z2);
     if (e.clamped.x) dp.z += dtx * tx / p.z; else dp.x += dtx;
     if (e.clamped.y) dp.z += dty * ty / p.z; else dp.y += dty;
     vstore3((float3)(wt[0] * dp.x + wt[1] * dp.y + wt[2] * dp.z, wt[3] * dp.x + wt[4] * dp.y + wt[5] * dp.z,
                      wt[6] * dp.x + wt[7] * dp.y + wt[8] * dp.z), i, d_means);
+    if (!view_grads) return;
+    /* p = W m + t and cov = W Sigma W^T (Sigma = M M^T): d W = d p m^T + 2 d cov W Sigma (d cov and
+       Sigma symmetric), d t = d p; row-major [d W | d t] per Gaussian, summed by the host. */
+    float sigma[9], w_sigma[9], dw[9];
+    for (int a = 0; a < 3; a++)
+        for (int b = 0; b < 3; b++)
+            sigma[3 * a + b] = e.ms[3 * a] * e.ms[3 * b] + e.ms[3 * a + 1] * e.ms[3 * b + 1]
+                               + e.ms[3 * a + 2] * e.ms[3 * b + 2];
+    MAT3_MUL(w, sigma, w_sigma);
+    MAT3_MUL(dcov, w_sigma, dw);
+    const float3 m = vload3(i, means);
+    const float dpa[3] = {dp.x, dp.y, dp.z}, ma[3] = {m.x, m.y, m.z};
+    for (int a = 0; a < 3; a++) {
+        for (int b = 0; b < 3; b++) d_views[12 * i + 3 * a + b] = dpa[a] * ma[b] + 2.f * dw[3 * a + b];
+        d_views[12 * i + 9 + a] = dpa[a];
+    }
 }
 
-/* Backward of the projection, TILE Gaussians per work-item (as project): d_splats[i] = (d mean2d x, y, d conic
-   A, B, C, d opacity, ...) (from blend.cl's splat_backward) -> d means [N,3], d quats [N,4] (of
-   the unit-quaternion formula), d scales [N,3], d opacities [N]. Culled Gaussians (radius 0) get
-   zeros. The chain, with c = (a, b, c) the 2D covariance and (A, B, C) its inverse:
+/* Backward of the projection, TILE Gaussians per work-item (as project): d_splats[i] = (d mean2d x,
+   y, d conic A, B, C, unread, d depth, unread) (the opacity passes the projection unchanged) ->
+   d means [N,3], d quats [N,4] (of the unit-quaternion formula), d scales [N,3] and, when
+   view_grads, each Gaussian's share of d viewmat, d_views [N,12] (rows 0..2 of the 3x4 [W | t]).
+   Culled Gaussians (radii 0) get zeros. The chain, with c = (a, b, c) the 2D covariance and
+   (A, B, C) its inverse:
      conic:  dc = -(inverse) d(inverse) (inverse), per entry below;
      cov2d = J cov J^T:  d cov = J^T dc J, d J rows = 2 dc J cov (dc symmetric);
      cov = W M M^T W^T, M = R S:  d M = 2 W^T d cov W M, d s_k = sum_i dM_ik R_ik, dR_ik = dM_ik s_k;
-     J(p) and mean2d = (fx x / z + cx, fy y / z + cy):  d p, then d means = W^T d p. */
+     J(p), mean2d = (fx x / z + cx, fy y / z + cy) and depth = z:  d p, then d means = W^T d p;
+     p = W m + t:  d W += d p m^T, d t = d p; cov:  d W += 2 d cov W M M^T. */
 __kernel void project_backward(const int n, __global const float *means, __global const float *quats,
                                __global const float *scales, __global const float *viewmat,
                                const float fx, const float fy, const float cx, const float cy,
-                               const int width, const int height, __global const int *radii,
+                               const int width, const int height, __global const int2 *radii,
                                __global const float8 *d_splats,
                                __global float *d_means, __global float4 *d_quats,
-                               __global float *d_scales, __global float *d_opacities) {
+                               __global float *d_scales, const int view_grads,
+                               __global float *d_views) {   /* [N,12] when view_grads */
     const int i0 = get_global_id(0) * TILE;
     if (i0 >= n) return;
     const ewa_t lanes = ewa(i0, n, means, quats, scales, viewmat, fx, fy, cx, cy, width, height);
     for (int l = 0; l < TILE && i0 + l < n; l++) {
         ewa1_t e;
         ewa_lane(&lanes, l, &e);
-        gaussian_backward(i0 + l, &e, scales, quats, viewmat, fx, fy, radii, d_splats,
-                          d_means, d_quats, d_scales, d_opacities);
+        gaussian_backward(i0 + l, &e, means, scales, quats, viewmat, fx, fy, radii, d_splats,
+                          d_means, d_quats, d_scales, view_grads, d_views);
     }
 }

@@ -5,11 +5,12 @@ Layers, bottom to top: ``runtime`` (OpenCL device, launcher, memory, constants) 
 (rasterize, autograd, cache) -> ``backbone`` (GS-Net's sparse UNet) -> ``app`` (data, training,
 evaluation, demo, bench, CLI).
 """
-from .render import SelectionCache, rasterization, rasterize, render_volume_fused
+from .render import (SelectionCache, rasterization, rasterize, rasterize_top_contributing_gaussian_ids,
+                     render_volume_fused)
 from .scene import (Camera, Gaussians, SceneFormatError, load_cameras, load_ply, load_scene,
                     load_splat, look_at, orbit_cameras, save_ply)
 
 __all__ = ["Camera", "Gaussians", "SceneFormatError", "SelectionCache", "load_cameras", "load_ply",
            "load_scene", "load_splat", "look_at", "orbit_cameras", "rasterization", "rasterize",
-           "render_volume_fused", "save_ply"]
+           "rasterize_top_contributing_gaussian_ids", "render_volume_fused", "save_ply"]
 __version__ = "0.1.0"

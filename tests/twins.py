@@ -33,9 +33,11 @@ def origin_camera():
 
 
 def assert_projection_matches(meta, proj):
-    vis = proj["radii"] > 0
-    mismatch = meta["radii"] != proj["radii"]
-    # a radius may differ only where float32 and float64 round 3*sqrt(lambda) to different ceilings
+    assert meta["radii"].shape == proj["radii"].shape == (len(proj["radii"]), 2)
+    vis = proj["radii"][:, 0] > 0
+    assert ((meta["radii"] > 0) == (proj["radii"] > 0)[:, :1]).all(), "both radii are 0 exactly when culled"
+    mismatch = (meta["radii"] != proj["radii"]).any(1)
+    # a radius may differ only where float32 and float64 round a square root to different ceilings
     assert mismatch.sum() <= max(1, int(0.002 * len(mismatch))), f"{mismatch.sum()} radii differ"
     both = vis & ~mismatch
     for key in ("means2d", "conics", "depths"):
@@ -53,3 +55,22 @@ def render_both(g, features, cam, background=None):
     rimg, ralpha, rdepth = vrender_ref.vrender(meta, meta["tile_ranges"], meta["flatten_ids"], features,
                                        cam.width, cam.height, background)
     return (img.numpy(), alpha.numpy(), meta), (rimg, ralpha, rdepth, proj)
+
+
+def top_contributors(meta, width: int, height: int, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """gsplat's top contributors of a plan's meta (means2d, conics, opacities, tile_ranges,
+    flatten_ids) from the V-Render twin: per pixel (row-major) the k largest weights alpha_i T_i
+    (ties: the nearer first), in depth order, and those weights. Returns ids [P,k] (-1 padded)
+    and weights [P,k] (0 padded)."""
+    from qr_cl.stages import select_ref
+    ids = np.full((width * height, k), -1, np.int32)
+    weights = np.zeros((width * height, k), np.float32)
+    tiles_x = -(-width // 16)
+    for p in range(width * height):
+        x, y = p % width, p // width
+        start, end = meta["tile_ranges"][(y // 16) * tiles_x + x // 16]
+        tile_ids = np.asarray(meta["flatten_ids"][start:end])
+        pos, w, _ = select_ref.volume_select(select_ref.alphas(meta, tile_ids, np.array([[x, y]]))[0])
+        keep = np.sort(np.lexsort((pos, -w))[:k])
+        ids[p, :len(keep)], weights[p, :len(keep)] = tile_ids[pos[keep]], w[keep]
+    return ids, weights

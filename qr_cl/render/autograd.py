@@ -2,18 +2,23 @@
 
 :class:`BlendFunction`: gradients w.r.t. per-Gaussian features (and background) through a given
 Selection (GS-Net: the Gaussians are frozen, so the geometry is a constant of the graph).
-:class:`RasterFunction`: the whole render of one camera, with gradients w.r.t. the Gaussians too
-(means, quats, scales, opacities; the selection itself is piecewise constant in them).
-:class:`SHColours`: the colour stage (sh.cl), with gradients w.r.t. SH coefficients and means.
+A render of one camera with gradients w.r.t. the Gaussians is two Functions, with gsplat's 2-D
+tensors between them: :class:`ProjectFunction` (means, quats, scales, viewmat -> means2d, conics,
+depths of the plan's splats) and :class:`RasterFunction` (means2d, conics, opacities, features,
+background -> image, alpha through a Selection, which is piecewise constant in the geometry).
+:class:`SHColours`: the colour stage (sh.cl), with gradients w.r.t. SH coefficients, means and the
+camera centre.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 import torch
 
 from ..runtime import channel_layout, check_channels, device_rows, host_empty, shared_array, to_device
+from ..stages.binning import RasterPlan
 from ..stages.blend import blend_backward, blend_backward_alpha, blend_forward, splat_backward
 from ..stages.project import project_backward
 from ..stages.select import Selection
@@ -100,7 +105,7 @@ def blend(selection: Selection, features: torch.Tensor, background: torch.Tensor
 
 @dataclass(frozen=True)
 class View:
-    """What :class:`RasterFunction` renders besides the Gaussians: camera (viewmat [4,4]
+    """What a render of one camera needs besides the Gaussians: camera (viewmat [4,4]
     world-to-camera, K [3,3] px, width, height px, near/far camera z), sampler and K, and the rays
     (pixels [P,2] (x, y) or None for the whole image, ray p = y * width + x)."""
 
@@ -115,51 +120,110 @@ class View:
     pixels: np.ndarray | None = None
 
 
-class RasterFunction(torch.autograd.Function):
-    """(image [P,C], alpha [P,1]) = the render of Gaussians (means [N,3], unit quats [N,4], scales
-    [N,3], opacities [N], features [N,C], background [C] or None) for one :class:`View`, through
-    its Selection (of the same Gaussians, :func:`qr_cl.render.engine.render_view`); alpha = 1 -
-    the transmittance where the walk stopped.
+def _to_tensor(array: np.ndarray, like: torch.Tensor) -> torch.Tensor:
+    """A float host array as a tensor of ``like``'s dtype."""
+    return torch.from_numpy(np.ascontiguousarray(array)).to(like.dtype)
 
-    Backward (deterministic: every per-Gaussian sum runs over the selection's transpose in a fixed
-    order): features and background as :class:`BlendFunction`; the geometry by
-    blend_backward_alpha (dL/dalpha per entry; for volume also through the background weight and
-    alpha = 1 - T) -> splat_backward (mean2d, conic, opacity) -> project_backward (means, quats,
-    scales, opacities). The selection is piecewise constant in the geometry and gets no gradient;
-    for the K samplers alpha is returned detached (it is the walk's T, over Gaussians the
-    selection does not keep), and so it is when the Gaussians need no gradient.
+
+class ProjectFunction(torch.autograd.Function):
+    """(means2d [C,N,2] px, conics [C,N,3] (A, B, C: the inverse 2D covariance), depths [C,N]
+    camera z) of the splats of ``plans`` (one per camera: the projection of means [N,3], unit
+    quats [N,4] and scales [N,3] by viewmats [C,4,4] for ``views``; zeros for culled Gaussians),
+    stacked on the host.
+
+    Backward by project.cl's ``project_backward`` per camera (16 Gaussians per work-item, no sums
+    across Gaussians), the cameras' shares added in camera order, to means, quats, scales and,
+    when they need one, the viewmats: each camera's per-Gaussian shares of dL/dviewmat summed on
+    the host in float64, in a fixed order (deterministic). The intrinsics get no gradient.
     """
 
     @staticmethod
-    def forward(ctx, means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
-                features: torch.Tensor, background: torch.Tensor | None, selection: Selection, view: View):
+    def forward(ctx, means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, viewmats: torch.Tensor,
+                plans: list[RasterPlan], views: list[View]):
+        splats = np.stack([plan.splats.get() for plan in plans])
+        ctx.plans, ctx.views = plans, views
+        ctx.save_for_backward(means, quats, scales, viewmats)
+        return (_to_tensor(splats[..., :2], means), _to_tensor(splats[..., 2:5], means),
+                _to_tensor(splats[..., 6], means))
+
+    @staticmethod
+    def backward(ctx, d_means2d: torch.Tensor, d_conics: torch.Tensor, d_depths: torch.Tensor):
+        means, quats, scales, viewmats = ctx.saved_tensors
+        rt = ctx.plans[0].runtime
+        d_splats = np.zeros((len(ctx.plans), means.shape[0], 8), np.float32)
+        for cols, grad in ((slice(0, 2), d_means2d), (slice(2, 5), d_conics), (6, d_depths)):
+            if grad is not None:
+                d_splats[..., cols] = host_rows(grad)
+        dev = [to_device(rt, host_rows(t)) for t in (means, quats, scales)]
+        sums = [np.zeros(t.shape, np.float32) for t in (means, quats, scales)]
+        d_views = np.zeros((len(ctx.plans), 4, 4))
+        for c, (plan, view) in enumerate(zip(ctx.plans, ctx.views)):
+            *grads, d_view = project_backward(rt, *dev, plan.radii, view.viewmat, view.K, view.width, view.height,
+                                              to_device(rt, d_splats[c]), view_grads=ctx.needs_input_grad[3])
+            for total, grad in zip(sums, grads):
+                total += grad.get()
+            if d_view is not None:
+                d_views[c] = d_view
+        grads = [_to_tensor(total, means) if need else None for total, need in zip(sums, ctx.needs_input_grad[:3])]
+        return (*grads, _to_tensor(d_views, viewmats) if ctx.needs_input_grad[3] else None, None, None)
+
+
+#: A callback that receives a render's |dL/dmean2d| sums [N,2] (gsplat's absgrad, see RasterFunction).
+AbsGradSink = Callable[[np.ndarray], None]
+
+
+class RasterFunction(torch.autograd.Function):
+    """(image [P,C], alpha [P,1]) = the blend of one camera's Selection (of ``selection.plan``,
+    whose splats are means2d [N,2], conics [N,3] and opacities [N]) with features [N,C] and
+    background [C] or None; alpha = 1 - the transmittance where the walk stopped. The tensors
+    means2d, conics (None when no gradient is wanted: the kernels read the plan's splats) and
+    opacities are the values of the plan's splats: :class:`ProjectFunction`'s outputs (or views of
+    gsplat's meta tensors built from them).
+
+    Backward (deterministic: every per-Gaussian sum runs over the selection's transpose in a fixed
+    order): features and background as :class:`BlendFunction`; means2d, conics and opacities by
+    blend_backward_alpha (dL/dalpha per entry; for volume also through the background weight and
+    alpha = 1 - T) -> splat_backward. ``absgrad``, when given, receives the per-Gaussian sums of
+    the absolute per-pixel dL/dmean2d [N,2] (gsplat's absgrad) whenever means2d gets a gradient.
+    The selection is piecewise constant in the geometry and gets no gradient; for the K samplers
+    alpha is returned detached (it is the walk's T, over Gaussians the selection does not keep),
+    and so it is when the splats need no gradient.
+    """
+
+    @staticmethod
+    def forward(ctx, means2d: torch.Tensor | None, conics: torch.Tensor | None, opacities: torch.Tensor,
+                features: torch.Tensor, background: torch.Tensor | None, selection: Selection,
+                absgrad: AbsGradSink | None):
         image = _blend_image(selection, features, background)
         t_walk = selection.t_walk.get()[:selection.n_rays]
         alpha = torch.from_numpy(1 - t_walk[:, None]).to(features.dtype)
-        if view.sampler != "volume" or not any(ctx.needs_input_grad[:4]):   # alpha is the geometry's
+        if selection.sampler != "volume" or not any(ctx.needs_input_grad[:3]):   # alpha is the geometry's
             ctx.mark_non_differentiable(alpha)
-        ctx.selection, ctx.view = selection, view
-        ctx.save_for_backward(means, quats, scales, features, background)
+        ctx.selection, ctx.absgrad = selection, absgrad
+        ctx.save_for_backward(features, background)
         return image, alpha
 
     @staticmethod
     def backward(ctx, grad_image: torch.Tensor, grad_alpha: torch.Tensor):
-        sel, view = ctx.selection, ctx.view
-        means, quats, scales, features, background = ctx.saved_tensors
-        grads = [None] * 4
-        if any(ctx.needs_input_grad[:4]):
-            geometry = [host_rows(t) for t in (means, quats, scales)]
-            grads = _geometry_grads(sel, view, geometry, features, background, grad_image, grad_alpha)
-        d_features = _feature_grad(sel, grad_image, features.shape[1]) if ctx.needs_input_grad[4] else None
-        d_background = _background_grad(sel, grad_image) if ctx.needs_input_grad[5] else None
-        return (*grads, d_features, d_background, None, None)
+        sel = ctx.selection
+        features, background = ctx.saved_tensors
+        splat_grads = [None] * 3
+        if any(ctx.needs_input_grad[:3]):
+            d_splats = _splat_grads(sel, features, background, grad_image, grad_alpha)
+            splat_grads = [_to_tensor(d_splats[:, cols], grad_image) if need else None
+                           for cols, need in zip((slice(0, 2), slice(2, 5), 5), ctx.needs_input_grad[:3])]
+            if ctx.absgrad is not None and ctx.needs_input_grad[0]:
+                ctx.absgrad(d_splats[:, 6:8])
+        d_features = _feature_grad(sel, grad_image, features.shape[1]) if ctx.needs_input_grad[3] else None
+        d_background = _background_grad(sel, grad_image) if ctx.needs_input_grad[4] else None
+        return (*splat_grads, d_features, d_background, None, None)
 
 
-def _geometry_grads(sel: Selection, view: View, geometry: list[np.ndarray], features: torch.Tensor,
-                    background: torch.Tensor | None, grad_image: torch.Tensor, grad_alpha: torch.Tensor | None
-                    ) -> list[torch.Tensor]:
-    """[d means [N,3], d quats [N,4], d scales [N,3], d opacities [N]] of :class:`RasterFunction`
-    (geometry: the float32 host means, quats and scales)."""
+def _splat_grads(sel: Selection, features: torch.Tensor, background: torch.Tensor | None,
+                 grad_image: torch.Tensor, grad_alpha: torch.Tensor | None) -> np.ndarray:
+    """dL/dsplats [N,8] float32 on the host (d mean2d x, y; d conic A, B, C; d opacity; the sums of
+    |d mean2d x|, |d mean2d y| over the entries) of :class:`RasterFunction`: blend_backward_alpha
+    -> splat_backward."""
     rt = sel.plan.runtime
     channels = features.shape[1]
     cstride = channel_layout(channels)[2]
@@ -174,28 +238,30 @@ def _geometry_grads(sel: Selection, view: View, geometry: list[np.ndarray], feat
     with device_rows(rt, host_rows(features), cstride) as rows, \
             device_rows(rt, host_rows(grad_image), cstride) as dimage:
         d_alpha = blend_backward_alpha(sel, rows, dimage, channels, d_trem)
-    d_splats = splat_backward(sel, d_alpha)
-    dev = [to_device(rt, a) for a in geometry]
-    out = project_backward(rt, *dev, sel.plan.radii, view.viewmat, view.K, view.width, view.height, d_splats)
-    return [torch.from_numpy(a.get()).to(grad_image.dtype) for a in out]
+    return splat_backward(sel, d_alpha).get()
 
 
 class SHColours(torch.autograd.Function):
     """RGB [N,3] = max(SH(dir) . sh + 0.5, 0) of SH coefficients sh [N,(d+1)^2,3] (d <= 3), dir =
     normalize(means [N,3] - campos [3]), by sh.cl; backward by its ``sh_backward`` kernel to sh
-    and means (the camera centre gets none)."""
+    and means, and to the camera centre campos (minus the sum of the means' share, in float64)."""
 
     @staticmethod
-    def forward(ctx, means: torch.Tensor, sh: torch.Tensor, campos: np.ndarray):
+    def forward(ctx, means: torch.Tensor, sh: torch.Tensor, campos: torch.Tensor):
         rt = checked_runtime()
         means_dev = to_device(rt, host_rows(means))
         sh_host = np.ascontiguousarray(sh.detach().to("cpu", torch.float32).numpy())
-        colors = sh_colors(rt, means_dev, sh_host, campos)
-        ctx.stage = (rt, means_dev, sh_host, campos, colors)
+        centre = campos.detach().to("cpu", torch.float32).numpy()
+        colors = sh_colors(rt, means_dev, sh_host, centre)
+        ctx.stage = (rt, means_dev, sh_host, centre, colors)
+        ctx.campos_dtype = campos.dtype
         return torch.from_numpy(colors.get()[:, :3].copy()).to(sh.dtype)
 
     @staticmethod
     def backward(ctx, grad_rgb: torch.Tensor):
-        rt, means_dev, sh_host, campos, colors = ctx.stage
-        d_sh, d_means = sh_backward(rt, means_dev, sh_host, campos, colors, host_rows(grad_rgb))
-        return torch.from_numpy(d_means).to(grad_rgb.dtype), torch.from_numpy(d_sh).to(grad_rgb.dtype), None
+        rt, means_dev, sh_host, centre, colors = ctx.stage
+        d_sh, d_means = sh_backward(rt, means_dev, sh_host, centre, colors, host_rows(grad_rgb))
+        d_campos = None
+        if ctx.needs_input_grad[2]:
+            d_campos = torch.from_numpy(-d_means.astype(np.float64).sum(0)).to(ctx.campos_dtype)
+        return torch.from_numpy(d_means).to(grad_rgb.dtype), torch.from_numpy(d_sh).to(grad_rgb.dtype), d_campos

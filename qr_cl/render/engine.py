@@ -1,5 +1,6 @@
 """The rendering engine under both public calls: one camera, plan -> select -> blend, with
-gradients w.r.t. the features, the background and the Gaussians (:class:`RasterFunction`).
+gradients w.r.t. the features, the background and the Gaussians (through gsplat's 2-D tensors:
+:class:`~qr_cl.render.autograd.ProjectFunction` -> :class:`~qr_cl.render.autograd.RasterFunction`).
 
 :func:`qr_cl.rasterize` and :func:`qr_cl.rasterization` are adapters of their argument conventions
 over :func:`render_view`; both therefore check inputs the same way (:func:`gaussian_tensors`),
@@ -16,7 +17,7 @@ import torch
 from ..runtime import BufferLimitError, Runtime, channel_layout, check_buffer, check_channels, trim_device_pool
 from ..stages.binning import RasterPlan
 from ..stages.select import Selection, entry_bytes, select
-from .autograd import RasterFunction, SHColours, View, host_rows
+from .autograd import AbsGradSink, ProjectFunction, RasterFunction, SHColours, View, host_rows
 from .cache import SelectionCache, selection_key
 from .plan import rasterize_plan
 from .selfcheck import checked_runtime
@@ -63,10 +64,18 @@ def background_tensor(background, channels: int) -> torch.Tensor | None:
     return bg
 
 
-def sh_colours(sh, means: torch.Tensor, viewmat: np.ndarray, sh_degree: int) -> torch.Tensor:
+def camera_centre(viewmat: np.ndarray | torch.Tensor) -> torch.Tensor:
+    """The camera centre [3] (world) of a world-to-camera viewmat [4,4], -R^T t: a tensor viewmat
+    keeps its graph."""
+    view = viewmat if isinstance(viewmat, torch.Tensor) else torch.from_numpy(np.asarray(viewmat, np.float32))
+    return -(view[:3, :3].T @ view[:3, 3])
+
+
+def sh_colours(sh, means: torch.Tensor, viewmat: np.ndarray | torch.Tensor, sh_degree: int) -> torch.Tensor:
     """The colour stage: view-dependent RGB [N,3] from SH coefficients [N,K,3] (the first
-    (sh_degree+1)^2 of K, sh_degree <= 3) by sh.cl, differentiable w.r.t. the coefficients and the
-    means (gsplat's convention: max(SH(dir) . c + 0.5, 0), dir from the camera centre)."""
+    (sh_degree+1)^2 of K, sh_degree <= 3) by sh.cl, differentiable w.r.t. the coefficients, the
+    means and (a tensor viewmat [4,4]) the camera (gsplat's convention: max(SH(dir) . c + 0.5, 0),
+    dir from the camera centre)."""
     sh = _tensor(sh)
     need = (sh_degree + 1) ** 2
     if sh.ndim != 3 or sh.shape[0] != means.shape[0] or sh.shape[2] != 3 or sh.shape[1] < need or sh_degree > 3:
@@ -74,8 +83,7 @@ def sh_colours(sh, means: torch.Tensor, viewmat: np.ndarray, sh_degree: int) -> 
                          f"got {tuple(sh.shape)}")
     if sh.shape[0] == 0:
         return sh.new_zeros(0, 3)
-    campos = -viewmat[:3, :3].T @ viewmat[:3, 3]
-    return SHColours.apply(means, sh[:, :need], campos.astype(np.float32))
+    return SHColours.apply(means, sh[:, :need], camera_centre(viewmat))
 
 
 def channel_groups(rt: Runtime, n: int, channels: int) -> list[slice]:
@@ -115,30 +123,75 @@ def ray_sets(rt: Runtime, width: int, height: int, pixels: np.ndarray | None, k:
 @dataclass
 class Render:
     """What :func:`render_view` returns: image [P,C] and alpha [P,1] tensors (P = H*W, row-major,
-    or the view's pixels), the plan (None for no Gaussians) and the selections of the ray sets."""
+    or the view's pixels), the plan (None for no Gaussians), the selections of the ray sets and
+    the blend of the extra signals [P,F] through the same selections (None without)."""
 
     image: torch.Tensor
     alpha: torch.Tensor
     plan: RasterPlan | None
     selections: list[Selection]
+    extra: torch.Tensor | None = None
+
+
+@dataclass
+class Splats2D:
+    """One camera's 2-D stage, what :class:`~qr_cl.render.autograd.RasterFunction` differentiates:
+    the plan, and the values of its splats as tensors (graph nodes whose gradients are wanted;
+    None for none): means2d [N,2] px, conics [N,3], opacities [N]."""
+
+    plan: RasterPlan
+    means2d: torch.Tensor | None
+    conics: torch.Tensor | None
+    opacities: torch.Tensor
+
+
+def project_view(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
+                 views: list[View], viewmats: torch.Tensor | None = None, plans: list[RasterPlan] | None = None
+                 ) -> tuple[list[RasterPlan], torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The projection of C cameras as gsplat's tensors: (plans, means2d [C,N,2] px, conics [C,N,3],
+    depths [C,N] camera z; zeros for culled Gaussians) of the Gaussians (N >= 1, unit quats,
+    activated opacities [N]) for ``views``, differentiable w.r.t. means, quats, scales and
+    ``viewmats`` (a [C,4,4] tensor with the views' values; None = no camera gradient).
+    ``plans``: the views' projections if already made (their splats are read), else they are."""
+    plans = plans or [rasterize_plan(*(host_rows(t) for t in (means, quats, scales, opacities)), view.viewmat,
+                                     view.K, view.width, view.height, view.near, view.far) for view in views]
+    view_t = torch.from_numpy(np.stack([view.viewmat for view in views])) if viewmats is None else viewmats
+    return (plans, *ProjectFunction.apply(means, quats, scales, view_t, plans, views))
+
+
+def _geometry_grads_wanted(*tensors: torch.Tensor | None) -> bool:
+    """Whether autograd records and one of the tensors (None: absent) requires a gradient."""
+    return torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in tensors)
 
 
 def render_view(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
                 features: torch.Tensor, background: torch.Tensor | None, view: View,
-                cache: SelectionCache | None = None) -> Render:
+                cache: SelectionCache | None = None, viewmat: torch.Tensor | None = None,
+                splats: Splats2D | None = None, absgrad: AbsGradSink | None = None,
+                extra: torch.Tensor | None = None) -> Render:
     """Render features [N,C] of the Gaussians (from :func:`gaussian_tensors`, unit quats) for
     ``view``: plan, then per set of rays (:func:`ray_sets`) select and, per group of channels
-    (:func:`channel_groups`), blend through :class:`RasterFunction`, so gradients reach features,
-    background and Gaussians. ``cache`` reuses the selections of the same geometry, camera,
-    sampler, K and rays."""
+    (:func:`channel_groups`), blend through :class:`~qr_cl.render.autograd.RasterFunction`, so
+    gradients reach features, background, Gaussians and ``viewmat`` (a [4,4] tensor with
+    view.viewmat's values, or None: no camera gradient). ``cache`` reuses the selections of the
+    same geometry, camera, sampler, K and rays.
+
+    ``extra``: [N,F] signals blended through the same selections (one plan, one walk per ray; a
+    blend of their own, without background) into ``Render.extra``. ``splats``: the view's 2-D
+    stage made by the caller (gsplat's meta tensors: the plan and tensors whose gradients the
+    caller reads); by default it is made here from the first selection's plan, through
+    :class:`~qr_cl.render.autograd.ProjectFunction` when a gradient w.r.t. the geometry is
+    wanted. ``absgrad`` receives each blend's sums of |dL/dmean2d| [N,2] in the backward."""
     n, channels = means.shape[0], features.shape[1]
     n_rays = view.width * view.height if view.pixels is None else len(view.pixels)
     if n == 0:
         bg = torch.zeros(channels) if background is None else background.detach()
-        return Render(bg.expand(n_rays, channels).clone(), torch.zeros(n_rays, 1), None, [])
+        return Render(bg.expand(n_rays, channels).clone(), torch.zeros(n_rays, 1), None, [],
+                      None if extra is None else torch.zeros(n_rays, extra.shape[1]))
     rt = checked_runtime()
     geometry = [host_rows(t) for t in (means, quats, scales, opacities)]
-    plans: list[RasterPlan] = []
+    plans: list[RasterPlan] = [] if splats is None else [splats.plan]
+    made: list[Splats2D] = [] if splats is None else [splats]
 
     def selection(rays: np.ndarray | None) -> Selection:
         def make() -> Selection:
@@ -151,21 +204,34 @@ def render_view(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, 
         return cache.get(selection_key(*geometry, view.viewmat, view.K, view.width, view.height, view.near,
                                        view.far, view.sampler, view.k, rays), make)
 
-    groups = channel_groups(rt, n, channels)
-    cstride = channel_layout(groups[0].stop - groups[0].start)[2]
-    parts: list[tuple[Selection, torch.Tensor, torch.Tensor]] = []
+    def splats_of(plan: RasterPlan) -> Splats2D:
+        if not made:
+            means2d = conics = None
+            if _geometry_grads_wanted(means, quats, scales, viewmat):
+                _, means2d, conics, _ = project_view(means, quats, scales, opacities, [view],
+                                                     None if viewmat is None else viewmat[None], [plan])
+                means2d, conics = means2d[0], conics[0]
+            made.append(Splats2D(plan, means2d, conics, opacities))
+        return made[0]
+
+    tables = [(features, background, channel_groups(rt, n, channels))]
+    if extra is not None:
+        tables.append((extra, None, channel_groups(rt, n, extra.shape[1])))
+    cstride = max(channel_layout(groups[0].stop - groups[0].start)[2] for _, _, groups in tables)
+    parts: list[tuple[Selection, list[torch.Tensor], torch.Tensor]] = []
     for rays in ray_sets(rt, view.width, view.height, view.pixels, view.k, cstride):
-        parts += _render_rays(selection, rays, view, (means, quats, scales, opacities), features, background, groups)
+        parts += _render_rays(selection, splats_of, rays, view, tables, absgrad)
     trim_device_pool(rt)
     sels = [sel for sel, _, _ in parts]
-    image = parts[0][1] if len(parts) == 1 else torch.cat([p[1] for p in parts])
+    images = [parts[0][1][t] if len(parts) == 1 else torch.cat([p[1][t] for p in parts]) for t in range(len(tables))]
     alpha = parts[0][2] if len(parts) == 1 else torch.cat([p[2] for p in parts])
-    return Render(image, alpha, sels[0].plan, sels)
+    return Render(images[0], alpha, sels[0].plan, sels, images[1] if extra is not None else None)
 
 
-def _render_rays(selection, rays: np.ndarray | None, view: View, gaussians: tuple, features: torch.Tensor,
-                 background: torch.Tensor | None, groups: list[slice]) -> list[tuple]:
-    """(Selection, image [P,C], alpha [P,1]) of the rays ``rays`` (None = the whole image): one
+def _render_rays(selection, splats_of, rays: np.ndarray | None, view: View, tables: list[tuple],
+                 absgrad: AbsGradSink | None) -> list[tuple]:
+    """(Selection, [image [P,C] of each feature table], alpha [P,1]) of the rays ``rays`` (None =
+    the whole image), tables being (features [N,C], background [C] or None, channel groups): one
     entry, or several when a selection does not fit in a device buffer and the rays are halved."""
     try:
         sel = selection(rays)
@@ -174,12 +240,14 @@ def _render_rays(selection, rays: np.ndarray | None, view: View, gaussians: tupl
             raise
         rays = image_pixels(view.width, view.height) if rays is None else rays
         half = len(rays) // 2
-        return (_render_rays(selection, rays[:half], view, gaussians, features, background, groups)
-                + _render_rays(selection, rays[half:], view, gaussians, features, background, groups))
+        return (_render_rays(selection, splats_of, rays[:half], view, tables, absgrad)
+                + _render_rays(selection, splats_of, rays[half:], view, tables, absgrad))
     try:
-        outs = [RasterFunction.apply(*gaussians, features[:, g], None if background is None else background[g],
-                                     sel, view) for g in groups]
+        s2d = splats_of(sel.plan)
+        outs = [[RasterFunction.apply(s2d.means2d, s2d.conics, s2d.opacities, features[:, g],
+                                      None if background is None else background[g], sel, absgrad) for g in groups]
+                for features, background, groups in tables]
     finally:
         sel.ready()                          # made even if no blend ran (it may be cached)
-    image = outs[0][0] if len(outs) == 1 else torch.cat([o[0] for o in outs], 1)
-    return [(sel, image, outs[0][1])]
+    images = [out[0][0] if len(out) == 1 else torch.cat([o[0] for o in out], 1) for out in outs]
+    return [(sel, images, outs[0][0][1])]

@@ -45,7 +45,7 @@ def empty_meta() -> dict:
     """The meta of a render of no Gaussians: the keys of a plan's meta, empty."""
     return {"means2d": np.zeros((0, 2), np.float32), "conics": np.zeros((0, 3), np.float32),
             "opacities": np.zeros(0, np.float32), "depths": np.zeros(0, np.float32),
-            "radii": np.zeros(0, np.int32), "tile_ranges": np.zeros((0, 2), np.int32),
+            "radii": np.zeros((0, 2), np.int32), "tile_ranges": np.zeros((0, 2), np.int32),
             "flatten_ids": np.zeros(0, np.int32), "n_keys": 0}
 
 
@@ -86,8 +86,8 @@ def rasterize(means, quats, scales, opacities, features, viewmat, K, width: int,
         transmittance where the ray's walk stopped (for quantile the walk stops once T < 1/(K+1)),
         and a meta mapping (a :class:`qr_cl.stages.binning.RenderMeta`: host copies made on first
         access; a dict for no Gaussians) with means2d [N,2] (px), conics [N,3], depths [N] (camera
-        z), radii [N] int32 (0 = culled), opacities [N], tile_ranges [tiles,2], flatten_ids, n_keys and (for
-        N >= 1) the ``selection`` used (:class:`qr_cl.stages.select.Selection`; a list of them,
+        z), radii [N,2] int32 (x, y half-extents in px; 0 = culled), opacities [N], tile_ranges
+        [tiles,2], flatten_ids, n_keys and (for N >= 1) the ``selection`` used (:class:`qr_cl.stages.select.Selection`; a list of them,
         one per set of rays, when the render was split to fit the device's buffers).
 
         Renders larger than the device's largest buffer are split into sets of rays and groups

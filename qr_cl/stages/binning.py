@@ -32,8 +32,8 @@ class RasterPlan:
     """Everything the per-pixel kernels need, on the device.
 
     splats [N,8] float32 (mean2d x, y in px; conic a, b, c; opacity; depth; sigma_max =
-    ln(opacity / ALPHA_MIN), the exponent beyond which its alpha is skipped), radii [N] int32
-    (0 = culled), ranges [tiles, 2] int32 [start, end) into ids, ids [max(M,1)] int32 depth-sorted
+    ln(opacity / ALPHA_MIN), the exponent beyond which its alpha is skipped), radii [N,2] int32
+    (x, y half-sides in px of the box it is binned within; 0 = culled), ranges [tiles, 2] int32 [start, end) into ids, ids [max(M,1)] int32 depth-sorted
     Gaussian ids per tile (M = n_keys; one unused entry when M = 0), width/height in px.
     Needs N >= 1 (callers handle empty scenes).
     """
@@ -70,9 +70,9 @@ class RasterPlan:
                 "height": self.height, "tiles_x": self.tiles_x}
 
     def meta(self) -> dict[str, np.ndarray]:
-        """Host copies: means2d [N,2] px, conics [N,3], depths [N], radii [N] int32, opacities [N],
-        tile_ranges [tiles,2] [start, end) into flatten_ids [M] (depth-sorted Gaussian ids per
-        tile, as gsplat names them), n_keys = M. Large arrays come from the host pool."""
+        """Host copies: means2d [N,2] px, conics [N,3], depths [N], radii [N,2] int32 (x, y px; 0 =
+        culled), opacities [N], tile_ranges [tiles,2] [start, end) into flatten_ids [M]
+        (depth-sorted Gaussian ids per tile), n_keys = M. Large arrays come from the host pool."""
         s = _get(self.splats).reshape(-1, 8)
 
         def column(cols):

@@ -14,7 +14,7 @@ def bin_and_sort(proj: dict, width: int, height: int) -> tuple[np.ndarray, np.nd
     tiles_x, tiles_y = tile_grid(width, height)
     n_tiles = tiles_x * tiles_y
     tile_ids, gauss_ids = [], []
-    for i in np.flatnonzero(proj["radii"] > 0):
+    for i in np.flatnonzero(proj["radii"][:, 0] > 0):
         spans = tile_spans(proj["means2d"][i], proj["conics"][i], proj["opacities"][i], proj["rects"][i], tiles_x)
         tiles = np.concatenate([ty * tiles_x + np.arange(x0, x1) for ty, x0, x1 in spans])
         tile_ids.append(tiles)

@@ -25,7 +25,9 @@ def render_rays(means2d: torch.Tensor, conics: torch.Tensor, opacities: torch.Te
                 background: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """The blend of fixed per-ray Gaussian lists as a differentiable torch function of the splats
     (the reference of blend.cl's geometry backward): ids [P,L] (depth order, -1 = padding), pixels
-    [P,2] integer (x, y); means2d [N,2] px, conics [N,3] (A, B, C), opacities [N], features [N,C].
+    [P,2] integer (x, y); means2d [N,2] px (or [P,L,2], each entry's own copy: its gradient is then
+    the per-pixel dL/dmean2d that gsplat's absgrad sums in absolute value), conics [N,3] (A, B, C),
+    opacities [N], features [N,C].
 
     alpha = min(ALPHA_MAX, opacity exp(-sigma)) at the pixel centre, w_j = T_j alpha_j
     (T_j = prod_{i<j} (1 - alpha_i)); ``normalized`` (the K samplers): w_j / sum_i w_i, with the
@@ -34,7 +36,7 @@ def render_rays(means2d: torch.Tensor, conics: torch.Tensor, opacities: torch.Te
     valid = torch.as_tensor(ids >= 0)
     g = torch.as_tensor(np.maximum(ids, 0), dtype=torch.long)
     centre = torch.as_tensor(np.asarray(pixels, np.float64) + 0.5, dtype=means2d.dtype)
-    d = means2d[g] - centre[:, None]
+    d = (means2d if means2d.ndim == 3 else means2d[g]) - centre[:, None]
     A, B, C = conics[g].unbind(-1)
     sigma = 0.5 * (A * d[..., 0] ** 2 + C * d[..., 1] ** 2) + B * d[..., 0] * d[..., 1]
     alpha = torch.where(valid, torch.clamp(opacities[g] * torch.exp(-sigma), max=ALPHA_MAX), 0.0)

@@ -50,8 +50,9 @@ def ewa(means, quats, scales, viewmat, K, width: int, height: int) -> dict[str, 
 
 def project(means, quats, scales, opacities, viewmat, K, width: int, height: int,
             near: float = 0.01, far: float = 1e10) -> dict[str, np.ndarray]:
-    """EWA projection (project.cl). Returns means2d [N,2], conics [N,3], depths [N], radii [N]
-    (3-sigma, px; 0 = culled, also when the opacity is below ALPHA_MIN), rects [N,4] tile
+    """EWA projection (project.cl). Returns means2d [N,2], conics [N,3], depths [N], radii [N,2]
+    (x, y px: the half-sides of the opacity-aware box, at most the 3-sigma radius; 0 = culled, also
+    when the opacity is below ALPHA_MIN), rects [N,4] tile
     rectangle [x0, y0, x1, y1) of the opacity-aware extent, tiles_touched [N] (the tiles of its
     rows' :func:`tile_spans`), opacities [N]."""
     with np.errstate(divide="ignore", invalid="ignore"), torch.no_grad():
@@ -78,7 +79,7 @@ def project(means, quats, scales, opacities, viewmat, K, width: int, height: int
     zero = ~visible
     return {"means2d": np.where(zero[:, None], 0, mean2d), "conics": np.where(zero[:, None], 0, e["conics"]),
             "depths": np.where(zero, 0, z),
-            "radii": np.where(zero, 0, np.fmin(radius, RADIUS_MAX)).astype(np.int32),
+            "radii": np.where(zero[:, None], 0, np.fmin(ext, RADIUS_MAX)).astype(np.int32),
             "rects": np.where(zero[:, None], 0, rects).astype(np.int32),
             "tiles_touched": np.where(zero, 0, touched).astype(np.int64),
             "opacities": np.where(zero, 0, opacity)}

@@ -105,8 +105,12 @@ class Browser:
         self.page("Input.dispatchKeyEvent", {"type": "keyDown", "text": "\r", **enter})
         self.page("Input.dispatchKeyEvent", {"type": "keyUp", **enter})
 
-    def drag(self, x0: float, y0: float, x1: float, y1: float, steps: int = 10) -> None:
-        """A left-button mouse drag from (x0, y0) to (x1, y1), page pixels."""
+    def drag(self, x0: float, y0: float, x1: float, y1: float, steps: int = 10, until: str | None = None,
+             timeout: float = 60) -> None:
+        """A left-button mouse drag from (x0, y0) to (x1, y1), page pixels; with ``until`` (a
+        JavaScript expression) the mouse keeps moving by a pixel at a time, before release, until it
+        is true (TimeoutError after ``timeout`` s): on a busy machine one frame can outlast a short
+        drag."""
         def mouse(kind: str, x: float, y: float) -> None:
             self.page("Input.dispatchMouseEvent", {"type": kind, "x": x, "y": y, "button": "left", "buttons": 1,
                                                    "clickCount": 1})
@@ -114,6 +118,13 @@ class Browser:
         for i in range(1, steps + 1):
             mouse("mouseMoved", x0 + i / steps * (x1 - x0), y0 + i / steps * (y1 - y0))
             time.sleep(0.03)
+        deadline = time.monotonic() + timeout
+        while until is not None and not self.evaluate(until):
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"{until} still false after dragging for {timeout} s")
+            x1 += 1
+            mouse("mouseMoved", x1, y1)
+            time.sleep(0.05)
         mouse("mouseReleased", x1, y1)
 
     def screenshot(self, element_id: str) -> np.ndarray:

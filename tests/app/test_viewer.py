@@ -134,8 +134,8 @@ def test_a_typed_query_changes_the_page(server, browser, tmp_path):
     assert np.abs(shots["wall"] - shots["floor"]).mean() > 0.02, "two queries gave the same picture"
     box = browser.evaluate("(() => { const r = document.getElementById('view').getBoundingClientRect();"
                            " return [r.x + r.width / 2, r.y + r.height / 2]; })()")
-    browser.drag(box[0], box[1], box[0] + 120, box[1] + 20)
-    browser.wait_for("+document.body.dataset.reduced > 0")                   # smaller frames while moving
+    browser.drag(box[0], box[1], box[0] + 120, box[1] + 20,
+                 until="+document.body.dataset.reduced > 0")                 # smaller frames while moving
     browser.wait_for("document.body.dataset.full === '1'", timeout=30)       # then the full one
     assert np.abs(browser.screenshot("view") - shots["floor"]).mean() > 0.02, "the drag did not move the camera"
     assert "render" in browser.evaluate("document.getElementById('time').textContent")

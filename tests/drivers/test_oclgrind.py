@@ -119,13 +119,17 @@ def exercise() -> None:
     assert densest > 32, f"the dense stack must give a ray more than 32 Gaussians, got {densest}"
 
     viewmats, Ks = torch.from_numpy(cam.viewmat)[None], torch.from_numpy(cam.K)[None]
-    for sampler in ("volume", "quantile"):                    # gradients w.r.t. the Gaussians
+    for sampler, packed in (("volume", False), ("quantile", True)):   # gradients w.r.t. the Gaussians, camera
         inputs = [torch.from_numpy(a).requires_grad_(True) for a in (*geo, feats, bg)]
-        img, alpha, _ = qr_cl.rasterization(*inputs[:5], viewmats, Ks, W, H, backgrounds=inputs[5][None],
-                                            sampler=sampler, k=4)
+        views = viewmats.clone().requires_grad_(True)
+        img, alpha, meta = qr_cl.rasterization(*inputs[:5], views, Ks, W, H, backgrounds=inputs[5][None],
+                                               sampler=sampler, k=4, packed=packed, absgrad=True)
+        meta["means2d"].retain_grad()
         (img.sum() + (alpha.sum() if sampler == "volume" else 0)).backward()
-        assert all(bool(torch.isfinite(t.grad).all()) for t in inputs)
-        print(f"rasterization {sampler} backward w.r.t. the Gaussians: ok", flush=True)
+        grads = [t.grad for t in inputs] + [views.grad, meta["means2d"].grad, meta["means2d"].absgrad]
+        assert all(bool(torch.isfinite(g).all()) for g in grads)
+        print(f"rasterization {sampler} packed={packed} backward w.r.t. the Gaussians, viewmats, means2d "
+              "(absgrad): ok", flush=True)
 
     for background in (None, bg):
         img, alpha, meta = qr_cl.render_volume_fused(*geo, feats, cam.viewmat, cam.K, W, H,

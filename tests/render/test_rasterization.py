@@ -42,8 +42,10 @@ def test_same_images_as_rasterize(random_scene, sampler, k):
     m, q, s, o, v, K, w, h = random_scene
     colors = np.random.default_rng(0).random((len(m), 5)).astype(np.float32)
     viewmats, Ks = turned_cameras(v, K)
-    image, alpha, meta = qr_cl.rasterization(*tensors(m, q, s, o, colors), viewmats, Ks, w, h, sampler=sampler, k=k)
+    image, alpha, meta = qr_cl.rasterization(*tensors(m, q, s, o, colors), viewmats, Ks, w, h, sampler=sampler, k=k,
+                                             packed=False)
     assert image.shape == (2, h, w, 5) and alpha.shape == (2, h, w, 1)
+    assert meta["radii"].shape == (2, len(m), 2) and meta["radii"].dtype == torch.int32
     for c in range(2):
         want, want_alpha, want_meta = qr_cl.rasterize(m, q, s, o, colors, viewmats[c].numpy(), K, w, h,
                                                       sampler=sampler, k=k)
@@ -134,8 +136,9 @@ def test_render_modes(random_scene):
     assert (ed[hit] >= depth.min() - 1e-3).all() and (ed[hit] <= depth.max() + 1e-3).all()
 
 
-@pytest.mark.parametrize("option,value", [("packed", True), ("rasterize_mode", "antialiased"), ("eps2d", 0.1),
-                                          ("tile_size", 8), ("absgrad", True), ("camera_model", "fisheye")])
+@pytest.mark.parametrize("option,value", [("rasterize_mode", "antialiased"), ("eps2d", 0.1), ("tile_size", 8),
+                                          ("camera_model", "fisheye"), ("radial_coeffs", torch.zeros(1, 6)),
+                                          ("covars", torch.zeros(1, 3, 3))])
 def test_unsupported_gsplat_options_raise(random_scene, option, value):
     m, q, s, o, v, K, w, h = random_scene
     with pytest.raises(ValueError, match=option):
@@ -150,8 +153,8 @@ def test_bad_shapes_and_modes_raise(random_scene):
         qr_cl.rasterization(*args, torch.tensor(v), torch.tensor(K), w, h)
     with pytest.raises(ValueError, match="render_mode"):
         qr_cl.rasterization(*args, torch.tensor(v)[None], torch.tensor(K)[None], w, h, render_mode="N")
-    with pytest.raises(ValueError, match="viewmats and Ks"):
-        qr_cl.rasterization(*args, torch.tensor(v, requires_grad=True)[None], torch.tensor(K)[None], w, h)
+    with pytest.raises(ValueError, match="Ks"):
+        qr_cl.rasterization(*args, torch.tensor(v)[None], torch.tensor(K, requires_grad=True)[None], w, h)
     with pytest.raises(ValueError, match="sh_degree"):
         qr_cl.rasterization(*args, torch.tensor(v)[None], torch.tensor(K)[None], w, h, sh_degree=1)
 
@@ -232,10 +235,12 @@ def test_per_camera_colours_and_no_gaussians(random_scene):
         torch.testing.assert_close(image[c], single[0])
     bg = torch.tensor([[0.2, 0.4, 0.6, 0.8]] * 2)
     empty = [torch.zeros(0, 3), torch.zeros(0, 4), torch.zeros(0, 3), torch.zeros(0)]
-    image, alpha, meta = qr_cl.rasterization(*empty, torch.zeros(0, 4), viewmats, Ks, w, h, backgrounds=bg,
-                                             render_mode="RGB+D")
-    assert image.shape == (2, h, w, 5) and (image[..., :4] == bg[:, None, None]).all() and (image[..., 4] == 0).all()
-    assert (alpha == 0).all() and meta["radii"].shape == (2, 0)
+    for packed in (False, True):
+        image, alpha, meta = qr_cl.rasterization(*empty, torch.zeros(0, 4), viewmats, Ks, w, h, backgrounds=bg,
+                                                 render_mode="RGB+D", packed=packed)
+        assert image.shape == (2, h, w, 5) and (image[..., :4] == bg[:, None, None]).all()
+        assert (image[..., 4] == 0).all() and (alpha == 0).all()
+        assert meta["radii"].shape == ((0, 2) if packed else (2, 0, 2)) and meta["flatten_ids"].shape == (0,)
     with pytest.raises(ValueError, match="quats has shape"):
         qr_cl.rasterization(*tensors(m, q[:, :3], s, o, colors[0]), viewmats, Ks, w, h)
 

@@ -42,7 +42,7 @@ def test_tile_spans_drop_only_tiles_the_ellipse_never_blends():
     proj = project_ref.project(g.means, g.quats, g.scales, g.opacities, cam.viewmat, cam.K, 640, 480)
     tiles_x = 40
     dropped = 0
-    for i in np.flatnonzero(proj["radii"] > 0):
+    for i in np.flatnonzero(proj["radii"][:, 0] > 0):
         x0, y0, x1, y1 = proj["rects"][i]
         kept = {(ty, tx) for ty, a, b in project_ref.tile_spans(proj["means2d"][i], proj["conics"][i],
                                                                  proj["opacities"][i], proj["rects"][i], tiles_x)
@@ -58,7 +58,7 @@ def test_tile_spans_drop_only_tiles_the_ellipse_never_blends():
                 dx, dy = proj["means2d"][i, 0] - xs, proj["means2d"][i, 1] - ys
                 sigma = 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
                 assert sigma.min() > sigma_max, f"Gaussian {i} blends in dropped tile ({tx}, {ty})"
-    rect_tiles = np.prod(proj["rects"][:, 2:] - proj["rects"][:, :2], axis=1)[proj["radii"] > 0].sum()
+    rect_tiles = np.prod(proj["rects"][:, 2:] - proj["rects"][:, :2], axis=1)[proj["radii"][:, 0] > 0].sum()
     assert dropped > 0.2 * rect_tiles, (dropped, rect_tiles)
 
 
@@ -71,14 +71,14 @@ def test_binning_of_tall_tilted_ellipses_matches_reference():
     plan = rasterize_plan(g.means, g.quats, g.scales, g.opacities, cam.viewmat, cam.K, 640, 480)
     proj = project_ref.project(g.means, g.quats, g.scales, g.opacities, cam.viewmat, cam.K, 640, 480)
     meta = plan.meta()
-    np.testing.assert_array_equal(meta["radii"] > 0, proj["radii"] > 0)
+    np.testing.assert_array_equal(meta["radii"][:, 0] > 0, proj["radii"][:, 0] > 0)
     proj.update({k: meta[k].astype(np.float64) for k in ("means2d", "conics", "depths", "opacities")})
-    rows = (proj["rects"][:, 3] - proj["rects"][:, 1])[proj["radii"] > 0]
+    rows = (proj["rects"][:, 3] - proj["rects"][:, 1])[proj["radii"][:, 0] > 0]
     assert (rows > 24).sum() >= 3 and (rows <= 24).sum() >= 30, "both kinds of rectangles"
     ranges, ids = binning_ref.bin_and_sort(proj, 640, 480)
     np.testing.assert_array_equal(plan.ranges.get(), ranges)
     np.testing.assert_array_equal(plan.ids.get()[:plan.n_keys], ids)
-    rect_pairs = np.prod(proj["rects"][:, 2:] - proj["rects"][:, :2], axis=1)[proj["radii"] > 0].sum()
+    rect_pairs = np.prod(proj["rects"][:, 2:] - proj["rects"][:, :2], axis=1)[proj["radii"][:, 0] > 0].sum()
     assert plan.n_keys < 0.8 * rect_pairs
 
 
