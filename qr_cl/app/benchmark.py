@@ -23,6 +23,7 @@ from .bench.implementations import run_all
 from .bench.jobs import sweep_jobs, sweep_sizes
 from .bench.plots import write_plots
 from .bench.report import REPORT_VERSION, compare, report_meta, summary_markdown
+from .bench.scale import SCALES, run_scale
 from .bench.sweep import Sweep
 from .timing import Stopwatch
 
@@ -63,6 +64,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "donut_fused.ply; default $QR_CL_DATA): timed beside the synthetic ones")
     parser.add_argument("--compare", nargs=2, metavar=("A.json", "B.json"),
                         help="print B/A time ratios of two reports instead of measuring")
+    parser.add_argument("--scale", type=int, nargs="*", metavar="N",
+                        help="instead of the sweep: per-stage time and peak memory against the number of Gaussians "
+                             f"(dense room, 640x480, Q-Render K=40, C=512; default N: {' '.join(map(str, SCALES))})")
     parser.add_argument("--implementations", action="store_true",
                         help="run the sweep on PoCL and on every implementation tests/drivers/install.sh "
                              "installed, one after the other, and write implementations.md side by side")
@@ -80,6 +84,11 @@ def run(args: argparse.Namespace) -> int:
         raise FileNotFoundError(2, "no such folder (--data)", args.data)
     watch = Stopwatch()
     mode = "smoke" if args.smoke else "quick" if args.quick else "full"
+    if args.scale is not None:
+        run_scale(out, tuple(args.scale) or SCALES)
+        print((out / "scale.md").read_text())
+        print(f"finished in {watch.seconds:.0f} s. Report: {out.resolve()} (scale.json, scale.md, scale.png)")
+        return 0
     if args.implementations:
         print(run_all(mode, out, Path(args.data) if args.data else None))
         print(f"finished in {watch.seconds:.0f} s. Report: {(out / 'implementations.md').resolve()}")

@@ -69,3 +69,18 @@ def test_implementations_side_by_side_lists_shared_rows_and_refusals():
     assert "**rusticl**: not run: loop limit" in text and "| pocl | intel |" in text
     assert "| s | 8x6 | selection | quantile | 10 | - | 2.00 | 3.00 (1.50x) |" in text
     assert "fused" not in text.split("| --- |")[-1]          # not shared: not in the table
+
+
+def test_scale_sweep_measures_every_stage_and_memory_against_n(tmp_path, capsys):
+    from qr_cl.app.bench.scale import STAGES, run_scale
+    report = run_scale(tmp_path, scales=(2000, 8000), channels=16, size=(64, 48), rounds=1)
+    ns = [m["n_gaussians"] for m in report["memory"]]
+    assert ns[0] < ns[1]
+    for n in ns:
+        assert {r["stage"] for r in report["rows"] if r["n_gaussians"] == n} == set(STAGES)
+    assert all(m["peak_bytes"] > 0 and m["table_bytes"] == m["n_gaussians"] * 16 * 4 for m in report["memory"])
+    table = (tmp_path / "scale.md").read_text()
+    assert "| blend-backward |" in table and "| peak memory, GB |" in table and f"N={ns[1]:,}" in table
+    assert (tmp_path / "scale.png").stat().st_size > 0
+    assert main(["bench", "--scale", "2000", "--out", str(tmp_path / "cli")]) == 0
+    assert "scale.md" in capsys.readouterr().out

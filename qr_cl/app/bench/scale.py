@@ -1,0 +1,122 @@
+"""``qr-cl bench --scale``: how each stage's cost grows with the number of Gaussians N.
+
+The dense indoor room of :func:`qr_cl.app.scenes.procedural.dense_room` (layered semi-transparent
+walls and floaters) at N = 300k, 1M and 3M, one 640x480 camera, 512-D float32 features and
+Q-Render K=40. Per N: projection, binning+sort, selection, blend forward and the feature
+backward (:class:`qr_cl.app.bench.sweep.Sweep`'s stage timings), the public call end to end,
+and the process's peak resident memory above its level before the scene was made (PoCL's
+buffers are host memory, so the device's arrays count too), with the feature table's own size.
+
+The cost model it checks: projection and the tile sort are O(N) (every Gaussian is projected,
+each visible one keyed once per tile it touches); the selection walk is O(pixels x entries per
+tile list), which grows with N only through the depth complexity of the lists; blend forward and
+backward are O(pixels x K x C), bounded by K whatever N is; the feature table itself is
+O(N x C) memory.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from tqdm import tqdm
+
+from ...render.selfcheck import checked_runtime
+from ...runtime import channel_layout
+from ..images import plt
+from ..renderers import SamplerRenderer
+from ..scenes.views import dense_view
+from ..timing import PeakMemory
+from . import roofline
+from .sweep import Sweep
+
+SCALES = (300_000, 1_000_000, 3_000_000)
+STAGES = ("projection", "binning+sort", "selection", "blend-forward", "blend-backward", "end-to-end")
+
+
+def run_scale(out: Path, scales=SCALES, k: int = 40, channels: int = 512, size: tuple[int, int] = (640, 480),
+              rounds: int = 2) -> dict:
+    """Measure every N of ``scales`` (module docstring); write scale.json, scale.md and
+    scale.png into ``out`` and return the report {"rows", "memory", "k", "channels", "size"}."""
+    out.mkdir(parents=True, exist_ok=True)
+    rt = checked_runtime()
+    sweep = Sweep(rounds, {"bandwidth_bytes_s": roofline.stream_bandwidth(rt, 64), "fma_flops": roofline.fma_rate(rt)})
+    memory = []
+    for n in tqdm(scales, desc="scale", unit="scene"):
+        with PeakMemory() as peak:
+            scene = dense_view(n, *size)
+            sweep.plan(scene)
+            sweep.sampler(scene, "quantile", k, stage_channels(rt, n, channels))
+            sweep.end_to_end(scene, SamplerRenderer("quantile", k), channels)
+        memory.append({"n_gaussians": len(scene.gaussians), "peak_bytes": peak.above_base,
+                       "table_bytes": len(scene.gaussians) * channels * 4})
+        del scene
+    rows = [r for r in sweep.rows if r["stage"] in STAGES]
+    report = {"k": k, "channels": channels, "size": list(size), "rows": rows, "memory": memory}
+    (out / "scale.json").write_text(json.dumps(report, indent=1))
+    (out / "scale.md").write_text(scale_markdown(report))
+    plot_scale(report, out / "scale.png")
+    return report
+
+
+def stage_channels(rt, n: int, channels: int) -> int:
+    """The channels of the blend stages' rows at ``n`` Gaussians: ``channels``, halved until an
+    [n, C] float32 table fits one device buffer (the public call splits the table into such
+    channel groups itself; the stage rows time one group)."""
+    while channels > 16 and n * channel_layout(channels)[2] * 4 > rt.max_buffer_bytes:
+        channels //= 2
+    return channels
+
+
+def _ms(rows: list[dict], n: int, stage: str) -> float | None:
+    row = next((r for r in rows if r["n_gaussians"] == n and r["stage"] == stage), None)
+    return None if row is None else 1e3 * row["min_s"]
+
+
+def scale_markdown(report: dict) -> str:
+    """The scale table: ms per stage and peak memory against N, and each against the smallest N."""
+    ns = [m["n_gaussians"] for m in report["memory"]]
+    blend_c = {n: next((r["channels"] for r in report["rows"] if r["n_gaussians"] == n and r["stage"] == "blend-forward"),
+                       report["channels"]) for n in ns}
+    w, h = report["size"]
+    lines = [f"# Cost against the number of Gaussians (dense room, {w}x{h}, Q-Render K={report['k']}, "
+             f"C={report['channels']} float32)", "",
+             "Minimum wall ms over the rounds after a warm-up; x: against the smallest N. Peak memory: resident "
+             "memory above the level before the scene was made (scene, plan, selection, feature table, image). "
+             "The blend rows time the largest table that fits one device buffer: C = " +
+             ", ".join(f"{blend_c[n]} at N={n:,}" for n in ns) + "; end-to-end is the public call with all "
+             f"{report['channels']} channels (split into such groups where needed).", "",
+             "| stage | " + " | ".join(f"N={n:,}" for n in ns) + " | " + " | ".join(f"x at {n:,}" for n in ns[1:]) + " |",
+             "| --- |" + " ---: |" * (2 * len(ns) - 1)]
+    for stage in STAGES:
+        ms = [_ms(report["rows"], n, stage) for n in ns]
+        if all(v is None for v in ms):
+            continue
+        cells = [f"{v:.1f}" if v is not None else "-" for v in ms]
+        ratios = [f"{v / ms[0]:.2f}" if v and ms[0] else "-" for v in ms[1:]]
+        lines.append(f"| {stage} | " + " | ".join(cells + ratios) + " |")
+    mem = report["memory"]
+    lines.append("| peak memory, GB | " + " | ".join(f"{m['peak_bytes'] / 1e9:.2f}" for m in mem) + " | " +
+                 " | ".join(f"{m['peak_bytes'] / max(mem[0]['peak_bytes'], 1):.2f}" for m in mem[1:]) + " |")
+    lines.append("| feature table, GB | " + " | ".join(f"{m['table_bytes'] / 1e9:.2f}" for m in mem) + " | " +
+                 " | ".join(f"{m['table_bytes'] / mem[0]['table_bytes']:.2f}" for m in mem[1:]) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def plot_scale(report: dict, path: Path) -> None:
+    """ms per stage against N, log-log, with the O(N) slope for reference."""
+    ns = [m["n_gaussians"] for m in report["memory"]]
+    fig, ax = plt.subplots(figsize=(6.5, 4.5))
+    for stage in STAGES:
+        pts = [(n, _ms(report["rows"], n, stage)) for n in ns]
+        pts = [p for p in pts if p[1] is not None]
+        if pts:
+            ax.plot(*zip(*pts), "o-", label=stage)
+    first = _ms(report["rows"], ns[0], "projection")
+    if first:
+        ax.plot(ns, [first * n / ns[0] for n in ns], ":", color="gray", label="O(N) from projection")
+    ax.set(xscale="log", yscale="log", xlabel="Gaussians N", ylabel="ms (min over rounds)",
+           title=f"dense room {report['size'][0]}x{report['size'][1]}, Q-Render K={report['k']}, C={report['channels']}")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
