@@ -7,6 +7,7 @@ query's text feature (from the scene's classes.json), shown with the turbo colou
 over the picture's 2nd..98th percentiles (so it shows where, not how much)."""
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +18,7 @@ from ...render import rasterize
 from ...runtime import SH_C0
 from ...scene import Camera, Gaussians
 from ..images import plt
-from ..scenes.folders import SceneData
+from ..scenes.folders import ClassTable, SceneData
 from .metrics import NYU40_NAMES, SUBSETS
 from .scoring import predict
 
@@ -68,7 +69,7 @@ def write_coloured_ply(path: Path, gaussians: Gaussians, colours: np.ndarray, pr
         fh.write(table.tobytes())
 
 
-def frame_cameras(scene: SceneData, views) -> list[Camera]:
+def frame_cameras(scene: SceneData, views: Sequence[int]) -> list[Camera]:
     """The cameras of the scene's frames ``views`` (indices), enlarged to at least
     :data:`PANEL_SIZE`."""
     cams = [scene.frames[v].camera for v in views]
@@ -76,7 +77,7 @@ def frame_cameras(scene: SceneData, views) -> list[Camera]:
             for c in cams]
 
 
-def default_query(table, gt: np.ndarray) -> str:
+def default_query(table: ClassTable, gt: np.ndarray) -> str:
     """The name of the class of ``table`` other than wall and floor with the most Gaussians in
     ``gt`` [N] (wall if there is none)."""
     ids = [int(c) for c in table.ids if int(c) not in (1, 2)]
