@@ -18,21 +18,9 @@ import subprocess
 import sys
 from pathlib import Path
 
-from qr_cl.app.experiments.claims import Stat, baseline_metric, metric
+from qr_cl.app.experiments.claims import baseline_metric, clean_renderers, metric, stat_cell
 
 MODELS = ("clip", "orthogonal")
-
-
-def _renderers(results: dict) -> list[tuple[str, int, str]]:
-    seen = {}
-    for r in results["runs"]:
-        if not r["noise"]:
-            seen.setdefault((r["sampler"], r["k"]), r["label"])
-    return [(*key, label) for key, label in seen.items()]
-
-
-def _cell(stat: Stat | None) -> str:
-    return "-" if stat is None else str(stat)
 
 
 def comparison(results: dict[str, dict], command: str) -> str:
@@ -46,10 +34,10 @@ def comparison(results: dict[str, dict], command: str) -> str:
     acc = {m: list(r["mask_accuracy19"].values()) for m, r in results.items()}
     lines.append("| single-mask accuracy among the 19 (min-max over the rooms) | " + " | ".join(
         f"{100 * min(a):.0f}-{100 * max(a):.0f} %" for a in acc.values()) + " |")
-    for sampler, k, label in _renderers(first):
-        lines.append(f"| GS-Net, {label} | " + " | ".join(_cell(metric(r, sampler, k)) for r in results.values())
+    for sampler, k, label in clean_renderers(first):
+        lines.append(f"| GS-Net, {label} | " + " | ".join(stat_cell(metric(r, sampler, k)) for r in results.values())
                      + " |")
-    lines.append("| per-scene baseline (Q-Render K=40) | " + " | ".join(_cell(baseline_metric(r))
+    lines.append("| per-scene baseline (Q-Render K=40) | " + " | ".join(stat_cell(baseline_metric(r))
                                                                        for r in results.values()) + " |")
     lines += ["", "| claim | " + " | ".join(MODELS) + " |", "| --- |" + " --- |" * len(MODELS)]
     for i, claim in enumerate(first["claims"]):

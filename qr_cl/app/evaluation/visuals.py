@@ -18,7 +18,7 @@ from ...render import rasterize
 from ...runtime import SH_C0
 from ...scene import Camera, Gaussians
 from ..images import plt
-from ..scenes.folders import ClassTable, SceneData
+from ..scenes.folders import ClassTable, SceneData, unit_rows
 from .metrics import NYU40_NAMES, SUBSETS
 from .scoring import predict
 
@@ -129,9 +129,9 @@ def write_visuals(scene: SceneData, features: np.ndarray, gt: np.ndarray, out: P
     files = []
     for i, cam in enumerate(cameras):
         feature_image = _render(scene, features, cam)
-        norm = np.linalg.norm(feature_image, axis=-1)
-        cosine = feature_image @ text / np.maximum(norm, 1e-12)
-        lo, hi = np.percentile(cosine[norm > 0], (2, 98)) if (norm > 0).any() else (0.0, 1.0)
+        hit = np.linalg.norm(feature_image, axis=-1) > 0
+        cosine = unit_rows(feature_image) @ text
+        lo, hi = np.percentile(cosine[hit], (2, 98)) if hit.any() else (0.0, 1.0)
         relevancy = colormaps["turbo"](np.clip((cosine - lo) / max(hi - lo, 1e-12), 0, 1))[..., :3]
         pred_image = _render(scene, pred_rgb, cam, "volume")
         gt_image = _render(scene, gt_rgb, cam, "volume", labelled)

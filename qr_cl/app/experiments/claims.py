@@ -60,6 +60,20 @@ def baseline_metric(results: dict, key: str = "miou19") -> Stat | None:
     return Stat.of(b[key] for b in base) if base else None
 
 
+def clean_renderers(results: dict) -> list[tuple[str, int, str]]:
+    """(sampler, k, label) of each distinct run without opacity noise, in the plan's order."""
+    seen = {}
+    for r in results["runs"]:
+        if not r["noise"]:
+            seen.setdefault((r["sampler"], r["k"]), r["label"])
+    return [(*key, label) for key, label in seen.items()]
+
+
+def stat_cell(stat: Stat | None) -> str:
+    """A table cell of ``stat`` ("mean ± std"), "-" when missing or NaN."""
+    return "-" if stat is None or math.isnan(stat.mean) else str(stat)
+
+
 def render_ms(results: dict, sampler: str, k: int = 0) -> float | None:
     row = next((t for t in results["render_ms"] if t["sampler"] == sampler and t["k"] == k), None)
     return None if row is None else row["ms"]

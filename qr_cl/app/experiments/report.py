@@ -7,7 +7,8 @@ import math
 from pathlib import Path
 
 from ..renderers import FUSED_NAME
-from .claims import PAPER, Stat, baseline_metric, cosine_to_volume, metric, render_ms, runs_of
+from .claims import (PAPER, baseline_metric, clean_renderers, cosine_to_volume, metric, render_ms, runs_of,
+                     stat_cell)
 from .figures import plot_miou_vs_time
 from .plan import NOISE_K
 from .scene_statistics import plot_scene_statistics
@@ -21,20 +22,6 @@ def _paper_miou(sampler: str, k: int) -> float | None:
     """The paper's Fig. 4 mIoU of a renderer (None where the paper has none)."""
     entry = PAPER.get(sampler)
     return entry.get(k) if isinstance(entry, dict) else entry
-
-
-def _stat(value: Stat | None) -> str:
-    return "-" if value is None or math.isnan(value.mean) else str(value)
-
-
-def _renderers(results: dict, noise: bool) -> list[tuple[str, int, float, str]]:
-    """(sampler, k, noise, label) of each distinct run, in the plan's order (noisy ones only if
-    ``noise``, else the clean ones)."""
-    seen = {}
-    for r in results["runs"]:
-        if bool(r["noise"]) == noise:
-            seen.setdefault((r["sampler"], r["k"], r["noise"]), r["label"])
-    return [(*key, label) for key, label in seen.items()]
 
 
 def baseline_section(results: dict) -> list[str]:
@@ -52,12 +39,12 @@ def baseline_section(results: dict) -> list[str]:
              "| model | mIoU19 all | mAcc19 all | mIoU19 reached | mAcc19 reached | train s |",
              "| --- | ---: | ---: | ---: | ---: | ---: |"]
     keys = ("miou19", "macc19", "miou19_reached", "macc19_reached")
-    lines.append(f"| {base[0]['label']} | " + " | ".join(_stat(baseline_metric(results, k)) for k in keys) +
+    lines.append(f"| {base[0]['label']} | " + " | ".join(stat_cell(baseline_metric(results, k)) for k in keys) +
                  f" | {sum(b['train_s'] for b in base) / len(base):.0f} |")
     for sampler, k in (("quantile", NOISE_K), ("volume", 0)):
         runs = runs_of(results, sampler, k)
         if runs:
-            lines.append(f"| GS-Net, {runs[0]['label']} | " + " | ".join(_stat(metric(results, sampler, k, key=m))
+            lines.append(f"| GS-Net, {runs[0]['label']} | " + " | ".join(stat_cell(metric(results, sampler, k, key=m))
                                                                     for m in keys) +
                          f" | {sum(r['train_s'] for r in runs) / len(runs):.0f} |")
     return lines + [""]
@@ -124,9 +111,9 @@ def report_markdown(results: dict) -> str:
               "| renderer | mIoU19 | mAcc19 | mIoU15 | mIoU10 | paper mIoU19 | render ms | cos to V | train s | "
               "final loss |",
               "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
-    for sampler, k, noise, label in _renderers(results, noise=False):
+    for sampler, k, label in clean_renderers(results):
         runs = runs_of(results, sampler, k)
-        lines.append(f"| {label} | " + " | ".join(_stat(metric(results, sampler, k, key=m))
+        lines.append(f"| {label} | " + " | ".join(stat_cell(metric(results, sampler, k, key=m))
                                                  for m in ("miou19", "macc19", "miou15", "miou10")) +
                      f" | {_fmt(_paper_miou(sampler, k), 2)} | {_fmt(render_ms(results, sampler, k))} | "
                      f"{_fmt(cosine_to_volume(results, sampler, k), 4)} | "
@@ -139,8 +126,8 @@ def report_markdown(results: dict) -> str:
     lines += ["## Opacity noise (Q-Render K=40)", "",
               "| noise scale | mIoU19 | mAcc19 | paper mIoU19 |", "| ---: | ---: | ---: | ---: |"]
     scales = sorted({r["noise"] for r in results["runs"] if r["sampler"] == "quantile" and r["k"] == NOISE_K})
-    lines += [f"| {s:g} | {_stat(metric(results, 'quantile', NOISE_K, s))} | "
-              f"{_stat(metric(results, 'quantile', NOISE_K, s, 'macc19'))} | {_fmt(PAPER['noise'].get(s), 2)} |"
+    lines += [f"| {s:g} | {stat_cell(metric(results, 'quantile', NOISE_K, s))} | "
+              f"{stat_cell(metric(results, 'quantile', NOISE_K, s, 'macc19'))} | {_fmt(PAPER['noise'].get(s), 2)} |"
               for s in scales]
     prof = results["profiles"]
     lines += ["", f"## Transmittance profiles (Fig. 3), K={prof['k']}", "",
