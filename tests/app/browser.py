@@ -108,9 +108,9 @@ class Browser:
     def drag(self, x0: float, y0: float, x1: float, y1: float, steps: int = 10, until: str | None = None,
              timeout: float = 60) -> None:
         """A left-button mouse drag from (x0, y0) to (x1, y1), page pixels; with ``until`` (a
-        JavaScript expression) the mouse keeps moving by a pixel at a time, before release, until it
-        is true (TimeoutError after ``timeout`` s): on a busy machine one frame can outlast a short
-        drag."""
+        JavaScript expression) the mouse keeps moving, a pixel back and forth so that it stays on the
+        page, before release, until it is true (TimeoutError after ``timeout`` s): on a busy machine
+        one frame can outlast a short drag."""
         def mouse(kind: str, x: float, y: float) -> None:
             self.page("Input.dispatchMouseEvent", {"type": kind, "x": x, "y": y, "button": "left", "buttons": 1,
                                                    "clickCount": 1})

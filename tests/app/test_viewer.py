@@ -23,6 +23,9 @@ from tests.app.browser import Browser, find_chromium
 from tests.app.query_helpers import tiny_checkpoint
 
 SIZE = (320, 240)
+#: The viewer's frame-time budget while moving, far below any 320x240 render, so that a drag always
+#: asks for reduced frames however fast the machine is.
+FRAME_MS = 0.01
 
 
 @pytest.fixture(scope="module")
@@ -30,7 +33,8 @@ def server(tiny_room, tmp_path_factory):
     """The viewer of the tiny room with a small trained checkpoint, serving on a free port."""
     checkpoint = tiny_checkpoint(tiny_room, tmp_path_factory.mktemp("gsnet"))
     args = build_parser().parse_args(["view", str(tiny_room), "--checkpoint", str(checkpoint), "--port", "0",
-                                      "--width", str(SIZE[0]), "--height", str(SIZE[1])])
+                                      "--width", str(SIZE[0]), "--height", str(SIZE[1]),
+                                      "--frame-ms", str(FRAME_MS)])
     srv = build_server(args)
     thread = threading.Thread(target=srv.serve_forever, daemon=True)
     thread.start()
@@ -79,6 +83,7 @@ def test_routes_and_frames(server):
     assert info["modes"] == ["rgb", "pca", "classes", "relevancy"] and info["gaussians"] == 3000
     assert info["legend"] and all(e["colour"].startswith("#") for e in info["legend"])
     assert info["camera"]["width"] == SIZE[0] and info["camera"]["radius"] > 0
+    assert info["camera"]["target_ms"] == FRAME_MS
     images = {}
     for mode, query in (("rgb", ""), ("pca", ""), ("classes", ""), ("relevancy", "wall"), ("relevancy", "floor")):
         status, headers, body = _get(_frame_url(server, mode=mode, query=query))
@@ -101,6 +106,8 @@ def test_a_taken_port_is_one_line(tiny_room, capsys):
         assert main(["view", str(tiny_room), "--port", str(port)]) == 2
     err = capsys.readouterr().err
     assert err.startswith(f"qr-cl: error: port {port} on 127.0.0.1 is in use") and err.count("\n") == 1
+    assert main(["view", str(tiny_room), "--frame-ms", "0"]) == 2
+    assert capsys.readouterr().err == "qr-cl: error: --frame-ms must be positive, got 0.0\n"
 
 
 @pytest.fixture(scope="module")

@@ -4,7 +4,8 @@ The page (``static/index.html``) orbits (drag), pans (right- or shift-drag), zoo
 flies (W/A/S/D, Q/E) the camera; shows RGB, feature PCA, predicted classes (with a legend) or the
 relevancy of a query typed into its text box; K and the sampler are selectable. While the camera
 moves it asks for smaller frames, sized from the last frame's render time to keep about
-:data:`TARGET_MS` a frame, and the full frame once the camera rests; it shows the frame time.
+``--frame-ms`` (default :data:`TARGET_MS`) a frame, and the full frame once the camera rests; it
+shows the frame time.
 """
 from __future__ import annotations
 
@@ -38,6 +39,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="address to serve on (default 127.0.0.1, this machine only)")
     parser.add_argument("--width", type=int, default=640, help="full frame width, px (default 640)")
     parser.add_argument("--height", type=int, default=480, help="full frame height, px (default 480)")
+    parser.add_argument("--frame-ms", type=float, default=TARGET_MS,
+                        help=f"render time per frame (ms) to keep while the camera moves; frames shrink "
+                             f"to fit it (default {TARGET_MS})")
     parser.add_argument("--up-axis", type=int, default=2,
                         help="world up axis for a scene without cameras (2 = z, 1 = y)")
     parser.add_argument("--sampler", choices=SAMPLERS, default="quantile", help="initial sampler of the feature modes")
@@ -51,6 +55,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def build_server(args: argparse.Namespace, encoder: TextEncoder | None = None) -> ViewerServer:
     """The viewer's server for ``args`` (bound, not yet serving); ``encoder`` replaces the one
     ``--clip-weights`` loads. OSError when the port is taken."""
+    if not args.frame_ms > 0:
+        raise QueryError(f"--frame-ms must be positive, got {args.frame_ms}")
     cap_kernel_threads()
     scene = load_query_scene(args.scene, args.level)
     if encoder is None and args.clip_weights:
@@ -58,7 +64,7 @@ def build_server(args: argparse.Namespace, encoder: TextEncoder | None = None) -
     features = scene_features(scene, args.checkpoint, args.features)
     lookup = TextLookup(features.shape[1], scene.classes, encoder) if features is not None else None
     renderer = FrameRenderer(scene, features, lookup, args.score)
-    view = dict(initial_view(renderer, args.width, args.height, args.up_axis), target_ms=TARGET_MS)
+    view = dict(initial_view(renderer, args.width, args.height, args.up_axis), target_ms=args.frame_ms)
     server = ViewerServer((args.host, args.port), renderer, view, args.k, args.sampler)
     try:
         renderer.warm_up(FrameRequest(tuple(view["eye"]), tuple(view["target"]), tuple(view["up"]), view["fov_y"],
