@@ -4,19 +4,21 @@
    backward: dF[g, :] = sum over entries (p, j) with id[p, j] = g of w[p, j] dImage[p, :]
 
    Rows are cstride floats (a multiple of VW * NV), read and written with explicit vector types as
-   in vrender.cl. The forward runs one work-item per (row, channel chunk of NV vectors of VW
-   floats). The backward sums each Gaussian's entries in one fixed order, by ray then by position
-   in the ray, without atomics, so its result is bitwise reproducible; two kernels give the same
-   bytes: a gather over the selection transposed by transpose.cl (many short work-items: GPU
-   shapes, and CPU ones for pixel subsets transposed ahead) and a scatter by a few work-items that
-   own ranges of Gaussians (CPU shapes otherwise: no transpose, every dImage row read whole). */
+   in vrender.cl; built with -DHALF_ROWS, the kernels that read the feature table read half rows
+   (ROW_T) and the feature backward is left out. The forward runs one work-item per (row, channel
+   chunk of NV vectors of VW floats). The backward sums each Gaussian's entries in one fixed
+   order, by ray then by position in the ray, without atomics, so its result is bitwise
+   reproducible; two kernels give the same bytes: a gather over the selection transposed by
+   transpose.cl (many short work-items: GPU shapes, and CPU ones for pixel subsets transposed
+   ahead) and a scatter by a few work-items that own ranges of Gaussians (CPU shapes otherwise:
+   no transpose, every dImage row read whole). */
 #include "common.h"
 
 /* Forward. Rays as in select.cl (full image tile-major, or a pixel subset); entries of row p
    are [offsets[p], offsets[p] + count[p]). */
 __kernel void blend(__global const int *offsets, __global const int *count,
                     __global const int *sel_ids, __global const float *sel_w,
-                    const int n_entries, __global const float *features,   /* [N, cstride] */
+                    const int n_entries, __global const ROW_T *features,   /* [N, cstride] */
                     const int n, const int cstride, const int full, const int n_rays, const int width, const int height,
                     const int tiles_x, __global const float *background,   /* [cstride] */
                     __global const float *t_rem, const int use_bg,
@@ -30,6 +32,7 @@ __kernel void blend(__global const int *offsets, __global const int *count,
                   image + (size_t)p * cstride);
 }
 
+#ifndef HALF_ROWS   /* the feature backward reads and writes float rows only */
 /* Backward gather: dF[g, chunk] = sum over Gaussian g's transposed entries of w dImage[p, chunk],
    in the fixed order of the transpose. One work-item per (Gaussian, channel chunk), Gaussians
    taken in the order ``order`` (by their first ray, so neighbours read neighbouring rows). */
@@ -80,6 +83,7 @@ __kernel void blend_backward_scatter(const int n_owners, __global const int *bou
         if (!touched[g])
             for (int v = 0; v < n_vec; v++) VSTREAM((vec_t)(0.f), v, dfeatures + (size_t)g * cstride);
 }
+#endif
 
 /* ---- gradients w.r.t. the geometry: dL/dalpha per entry, then per Gaussian splat ---- */
 
@@ -99,7 +103,7 @@ __kernel void blend_backward_alpha(const int n_rays, const int full, const int w
                                    const int n_entries, const int n,
                                    __global const int *sel_ids, __global const float *sel_w,
                                    __global const float8 *splats,
-                                   __global const float *features,   /* [N, cstride] */
+                                   __global const ROW_T *features,   /* [N, cstride] */
                                    __global const float *dimage,     /* [P, cstride] */
                                    const int cstride, const int normalized,
                                    __global const float *d_trem, __global float *d_alpha) {
@@ -113,9 +117,9 @@ __kernel void blend_backward_alpha(const int n_rays, const int full, const int w
     for (int j = start; j < end; j++) {
         d_alpha[j] = 0.f;
         if ((uint)sel_ids[j] >= (uint)n) continue;
-        __global const float *f = features + (size_t)sel_ids[j] * cstride;
+        __global const ROW_T *f = features + (size_t)sel_ids[j] * cstride;
         vec_t acc = (vec_t)(0.f);
-        for (int v = 0; v < cstride / VW; v++) acc += VLOAD(v, f) * VLOAD(v, di);
+        for (int v = 0; v < cstride / VW; v++) acc += RLOAD(v, f) * VLOAD(v, di);
         d_alpha[j] = vec_sum(acc);
         gw += d_alpha[j] * sel_w[j];
     }

@@ -330,6 +330,22 @@ typedef CAT(float, VW) vec_t;
     } while (0)
 #endif
 
+/* Feature tables (the rows a blend reads, never its outputs) hold ROW_T elements: float, or half
+   when built with -DHALF_ROWS (storage only: OpenCL C reads half rows with vload_half, a core
+   function that needs no half arithmetic). RLOAD(i, p) loads the i-th vec_t of such a row as
+   floats, exactly, so a half table blends as the float table of the same values. */
+#ifdef HALF_ROWS
+#define ROW_T half
+#if VW == 1
+#define RLOAD(i, p) vload_half(i, p)
+#else
+#define RLOAD(i, p) CAT(vload_half, VW)(i, p)
+#endif
+#else
+#define ROW_T float
+#define RLOAD(i, p) VLOAD(i, p)
+#endif
+
 /* VSTREAM(v, i, p): VSTORE of an output that the kernel does not read again, as a non-temporal
    store where the compiler offers one (clang's builtin) and the address is aligned to vec_t:
    the line is written without being read first (no read-for-ownership) and does not evict
@@ -371,10 +387,10 @@ typedef CAT(float, VW) vec_t;
 
 /* out[c0, c0 + NV * VW) of one image row = sum over the n entries (ids[j], w[j]) of
    w[j] features[ids[j], c0 ...] + tb * background[c0 ...] (the background only when use_bg),
-   summed in entry order RV vectors at a time; written with VSTREAM when stream. Ids outside the
-   n_rows rows of features are skipped. */
+   summed in float in entry order RV vectors at a time; written with VSTREAM when stream. Ids
+   outside the n_rows rows of features are skipped. */
 static inline void blend_entries(__global const int *ids, __global const float *w, const int n,
-                                 __global const float *features, const int n_rows, const int cstride, const int c0,
+                                 __global const ROW_T *features, const int n_rows, const int cstride, const int c0,
                                  const float tb, __global const float *background, const int use_bg,
                                  const int stream, __global float *out) {
     for (int v0 = 0; v0 < NV; v0 += RV) {
@@ -385,9 +401,9 @@ static inline void blend_entries(__global const int *ids, __global const float *
         for (int j = 0; j < n; j++) {
             if ((uint)ids[j] >= (uint)n_rows) continue;
             const float wj = w[j];
-            __global const float *row = features + (size_t)ids[j] * cstride + c;
+            __global const ROW_T *row = features + (size_t)ids[j] * cstride + c;
             #pragma unroll
-            for (int v = 0; v < RV; v++) acc[v] += wj * VLOAD(v, row);
+            for (int v = 0; v < RV; v++) acc[v] += wj * RLOAD(v, row);
         }
         #pragma unroll
         for (int v = 0; v < RV; v++) {

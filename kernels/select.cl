@@ -23,14 +23,14 @@ static inline void normalize_weights(__global float *w, int n) {
    bytes), read back while they are in cache, so the image is written while the next blocks are
    selected. BLEND_ARGS are their extra arguments (as blend's), BLEND_LANES(row) the blend. */
 #ifdef BLEND_ROWS
-#define BLEND_ARGS , __global const float *features, const int n_rows, const int cstride, \
+#define BLEND_ARGS , __global const ROW_T *features, const int n_rows, const int cstride, \
     __global const float *background, const int use_bg, const int stream, __global float *image
 #define BLEND_LANES(row) blend_lanes(row, K, out_ids, out_w, count, t_rem, features, n_rows, cstride, \
                                      background, use_bg, stream, image)
 
 static inline void blend_lanes(lanei row, int K, __global const int *ids, __global const float *w,
                                __global const int *count, __global const float *t_rem,
-                               __global const float *features, int n_rows, int cstride,
+                               __global const ROW_T *features, int n_rows, int cstride,
                                __global const float *background, int use_bg, int stream,
                                __global float *image) {
     for (int l = 0; l < TILE; l++) {

@@ -4,8 +4,8 @@
    them (the block walk of common.h). Gaussians that some pixel blends are buffered BATCH at a time
    as (id, per-pixel weights) and then blended into each pixel's output row chunk by chunk, RV
    vectors of VW channels per chunk held in registers, in depth order (a pixel's zero weights are skipped, so each
-   pixel sums exactly its own contributions). Feature rows have cstride floats, a multiple of
-   VW * RV. */
+   pixel sums exactly its own contributions). Feature rows have cstride elements (ROW_T: float,
+   or half with -DHALF_ROWS), a multiple of VW * RV. */
 #include "common.h"
 
 #define BATCH 32
@@ -13,7 +13,7 @@
 /* For each lane l with row[l] >= 0: out_l[c] = (init ? 0 : out_l[c]) + sum_j w[j]_l features[id[j], c]
    + bg_scale_l * background[c], out_l the lane's row of image; written with VSTREAM when stream
    (the rows' final write, of a large image). */
-static inline void blend_batch(__global float *image, __global const float *features, const int cstride,
+static inline void blend_batch(__global float *image, __global const ROW_T *features, const int cstride,
                                const int *id, const lanef *w, const int count, const lanei row,
                                const int init, const int stream, const lanef bg_scale,
                                __global const float *background) {
@@ -28,9 +28,9 @@ static inline void blend_batch(__global float *image, __global const float *feat
             for (int j = 0; j < count; j++) {
                 const float wj = LANE(w[j], l);
                 if (wj == 0.f) continue;
-                __global const float *f = features + (size_t)id[j] * cstride + c0;
+                __global const ROW_T *f = features + (size_t)id[j] * cstride + c0;
                 #pragma unroll
-                for (int v = 0; v < RV; v++) acc[v] += wj * VLOAD(v, f);
+                for (int v = 0; v < RV; v++) acc[v] += wj * RLOAD(v, f);
             }
             if (bg != 0.f) {
                 #pragma unroll
@@ -48,7 +48,7 @@ static inline void blend_batch(__global float *image, __global const float *feat
 __kernel void vrender(__global const int2 *ranges,     /* [tiles] [start, end) in ids */
                       __global const int *ids,         /* depth-sorted Gaussian ids per tile */
                       __global const float8 *splats,   /* [N] from project */
-                      __global const float *features,  /* [N, cstride] */
+                      __global const ROW_T *features,  /* [N, cstride] */
                       const int cstride, const int width, const int height, const int tiles_x,
                       __global const float *background,  /* [cstride], used when use_bg */
                       const int use_bg,

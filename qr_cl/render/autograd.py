@@ -31,6 +31,20 @@ def host_rows(tensor: torch.Tensor) -> np.ndarray:
     return tensor.detach().to("cpu", torch.float32).numpy()
 
 
+def table_rows(features: torch.Tensor) -> np.ndarray:
+    """A numpy view of a feature table [N, C]: a float16 table stays float16 (the kernels read it
+    as half and blend in float32), any other is :func:`host_rows`."""
+    if features.dtype == torch.float16:
+        return features.detach().to("cpu").numpy()
+    return host_rows(features)
+
+
+def image_dtype(features: torch.Tensor) -> torch.dtype:
+    """The dtype of a blend of ``features``: theirs, at least float32 (a float16 table's image
+    keeps the float32 sums)."""
+    return torch.promote_types(features.dtype, torch.float32)
+
+
 def _output(rows: int, channels: int, cstride: int):
     """A pooled host array [rows, cstride] the kernels write into, and the [rows, channels]
     tensor over it that the caller receives (a strided view when channels < cstride)."""
@@ -41,49 +55,50 @@ def _output(rows: int, channels: int, cstride: int):
 class BlendFunction(torch.autograd.Function):
     """image [P,C] = blend(selection, features [N,C]) (+ t_rem * background [C]).
 
-    No copies where the memory allows it: forward reads the features in place (float32,
-    C-contiguous, C == cstride; else padded once into a pooled host array) and writes the image
+    No copies where the memory allows it: forward reads the features in place (float32 or
+    float16, C-contiguous, C == cstride; else padded once into a pooled host array) and writes the image
     straight into the memory of the tensor it returns (a pooled host array that no earlier
     output still uses; [P, cstride] with a [P, C] view returned when C < cstride); backward
     likewise reads dImage in place and writes dF straight into the returned gradient. On devices
     that do not share host memory the same calls copy through pooled device buffers. The
     backward is :func:`blend_backward` (deterministic: a fixed sum order per Gaussian); the
-    background gets its gradient sum_p t_rem[p] dImage[p]. The selection gets none.
+    background gets its gradient sum_p t_rem[p] dImage[p]. The selection gets none. A float16
+    table gives a float32 image and a float16 gradient (summed in float32, then rounded).
     """
 
     @staticmethod
     def forward(ctx, features: torch.Tensor, selection: Selection, background: torch.Tensor | None):
-        ctx.selection, ctx.channels = selection, features.shape[1]
+        ctx.selection, ctx.channels, ctx.dtype = selection, features.shape[1], features.dtype
         return _blend_image(selection, features, background)
 
     @staticmethod
     def backward(ctx, grad_image: torch.Tensor):
         sel = ctx.selection
-        d_features = _feature_grad(sel, grad_image, ctx.channels) if ctx.needs_input_grad[0] else None
+        d_features = _feature_grad(sel, grad_image, ctx.channels, ctx.dtype) if ctx.needs_input_grad[0] else None
         d_background = _background_grad(sel, grad_image) if ctx.needs_input_grad[2] else None
         return d_features, None, d_background
 
 
 def _blend_image(sel: Selection, features: torch.Tensor, background: torch.Tensor | None) -> torch.Tensor:
-    """image [P,C] (features' dtype) of a Selection, written in place into a pooled host array."""
+    """image [P,C] (:func:`image_dtype`) of a Selection, written in place into a pooled host array."""
     rt = sel.plan.runtime
     channels = features.shape[1]
     cstride = channel_layout(channels)[2]
     bg = None if background is None else background.detach().cpu().numpy()
     host, image = _output(sel.n_rays, channels, cstride)
-    with device_rows(rt, host_rows(features), cstride) as rows, shared_array(rt, host, "w") as out:
+    with device_rows(rt, table_rows(features), cstride) as rows, shared_array(rt, host, "w") as out:
         blend_forward(sel, rows, channels, bg, out=out)
-    return image.to(features.dtype)
+    return image.to(image_dtype(features))
 
 
-def _feature_grad(sel: Selection, grad_image: torch.Tensor, channels: int) -> torch.Tensor:
-    """dL/dfeatures [N,C] by the deterministic blend_backward."""
+def _feature_grad(sel: Selection, grad_image: torch.Tensor, channels: int, dtype: torch.dtype) -> torch.Tensor:
+    """dL/dfeatures [N,C] in ``dtype`` (the features') by the deterministic blend_backward, in float32."""
     rt = sel.plan.runtime
     cstride = channel_layout(channels)[2]
     host, d = _output(sel.n_gaussians, channels, cstride)
     with device_rows(rt, host_rows(grad_image), cstride) as dimage, shared_array(rt, host, "w") as out:
         blend_backward(sel, dimage, channels, out=out)
-    return d.to(grad_image.dtype)
+    return d.to(dtype)
 
 
 def _background_grad(sel: Selection, grad_image: torch.Tensor) -> torch.Tensor:
@@ -93,8 +108,9 @@ def _background_grad(sel: Selection, grad_image: torch.Tensor) -> torch.Tensor:
 
 def blend(selection: Selection, features: torch.Tensor, background: torch.Tensor | None = None) -> torch.Tensor:
     """Differentiable blend: features [N,C] float tensor (C in 1..2048) -> image [P,C] (rays of the
-    selection; for the whole image row p = y * width + x). Computed in float32 on the device and
-    returned in features' dtype. Gradients flow to features and background only."""
+    selection; for the whole image row p = y * width + x). Computed in float32 on the device (a
+    float16 table read as half) and returned in features' dtype, at least float32. Gradients flow
+    to features (in their dtype) and background only."""
     if features.ndim != 2 or features.shape[0] != selection.n_gaussians:
         raise ValueError(f"features must be [{selection.n_gaussians}, C], got {tuple(features.shape)}")
     check_channels(features.shape[1])
@@ -196,7 +212,7 @@ class RasterFunction(torch.autograd.Function):
                 absgrad: AbsGradSink | None):
         image = _blend_image(selection, features, background)
         t_walk = selection.t_walk.get()[:selection.n_rays]
-        alpha = torch.from_numpy(1 - t_walk[:, None]).to(features.dtype)
+        alpha = torch.from_numpy(1 - t_walk[:, None]).to(image.dtype)
         if selection.sampler != "volume" or not any(ctx.needs_input_grad[:3]):   # alpha is the geometry's
             ctx.mark_non_differentiable(alpha)
         ctx.selection, ctx.absgrad = selection, absgrad
@@ -214,7 +230,8 @@ class RasterFunction(torch.autograd.Function):
                            for cols, need in zip((slice(0, 2), slice(2, 5), 5), ctx.needs_input_grad[:3])]
             if ctx.absgrad is not None and ctx.needs_input_grad[0]:
                 ctx.absgrad(d_splats[:, 6:8])
-        d_features = _feature_grad(sel, grad_image, features.shape[1]) if ctx.needs_input_grad[3] else None
+        d_features = _feature_grad(sel, grad_image, features.shape[1], features.dtype) \
+            if ctx.needs_input_grad[3] else None
         d_background = _background_grad(sel, grad_image) if ctx.needs_input_grad[4] else None
         return (*splat_grads, d_features, d_background, None, None)
 
@@ -235,7 +252,7 @@ def _splat_grads(sel: Selection, features: torch.Tensor, background: torch.Tenso
         if grad_alpha is not None:
             d_trem -= grad_alpha[:, 0].double()
         d_trem = d_trem.numpy()
-    with device_rows(rt, host_rows(features), cstride) as rows, \
+    with device_rows(rt, table_rows(features), cstride) as rows, \
             device_rows(rt, host_rows(grad_image), cstride) as dimage:
         d_alpha = blend_backward_alpha(sel, rows, dimage, channels, d_trem)
     return splat_backward(sel, d_alpha).get()

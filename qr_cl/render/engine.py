@@ -17,7 +17,7 @@ import torch
 from ..runtime import BufferLimitError, Runtime, channel_layout, check_buffer, check_channels, trim_device_pool
 from ..stages.binning import RasterPlan
 from ..stages.select import Selection, entry_bytes, select
-from .autograd import AbsGradSink, ProjectFunction, RasterFunction, SHColours, View, host_rows
+from .autograd import AbsGradSink, ProjectFunction, RasterFunction, SHColours, View, host_rows, table_rows
 from .cache import SelectionCache, selection_key
 from .plan import rasterize_plan
 from .selfcheck import checked_runtime
@@ -44,8 +44,11 @@ def gaussian_tensors(means, quats, scales, opacities) -> tuple[torch.Tensor, ...
 
 
 def feature_tensor(features, n: int) -> torch.Tensor:
-    """features [N,C] (C in 1..MAX_CHANNELS) as a CPU tensor (a float tensor keeps its dtype,
-    which the render returns; the kernels blend in float32); ValueError otherwise."""
+    """features [N,C] (C in 1..MAX_CHANNELS) as a CPU tensor: a float tensor keeps its dtype, a
+    float16 numpy array stays float16 (a half table: read as half, blended in float32), anything
+    else becomes float32; the render returns their dtype, at least float32. ValueError otherwise."""
+    if isinstance(features, np.ndarray) and features.dtype == np.float16:
+        features = torch.from_numpy(features)
     f = features.to("cpu") if isinstance(features, torch.Tensor) and features.is_floating_point() \
         else _tensor(features)
     if f.ndim != 2 or f.shape[0] != n:
@@ -86,15 +89,16 @@ def sh_colours(sh, means: torch.Tensor, viewmat: np.ndarray | torch.Tensor, sh_d
     return SHColours.apply(means, sh[:, :need], camera_centre(viewmat))
 
 
-def channel_groups(rt: Runtime, n: int, channels: int) -> list[slice]:
-    """Feature columns rendered together: all ``channels`` when their [n, cstride] device rows fit
-    in one buffer of the device, else groups of a multiple of 16 channels that do (channels are
-    blended independently, so the image is the same). BufferLimitError if 16 do not fit."""
-    if 4 * n * channel_layout(channels)[2] <= rt.max_buffer_bytes:
+def channel_groups(rt: Runtime, n: int, channels: int, itemsize: int = 4) -> list[slice]:
+    """Feature columns rendered together: all ``channels`` when their [n, cstride] device rows of
+    ``itemsize`` bytes fit in one buffer of the device, else groups of a multiple of 16 channels
+    that do (channels are blended independently, so the image is the same). BufferLimitError if
+    16 do not fit."""
+    if itemsize * n * channel_layout(channels)[2] <= rt.max_buffer_bytes:
         return [slice(0, channels)]
-    per = rt.max_buffer_bytes // (4 * n) // 16 * 16
+    per = rt.max_buffer_bytes // (itemsize * n) // 16 * 16
     if per < 16:
-        check_buffer(rt, 4 * n * 16, f"features of {n} Gaussians x 16 channels (the smallest group)")
+        check_buffer(rt, itemsize * n * 16, f"features of {n} Gaussians x 16 channels (the smallest group)")
     return [slice(c, min(c + per, channels)) for c in range(0, channels, per)]
 
 
@@ -214,9 +218,9 @@ def render_view(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, 
             made.append(Splats2D(plan, means2d, conics, opacities))
         return made[0]
 
-    tables = [(features, background, channel_groups(rt, n, channels))]
+    tables = [(features, background, channel_groups(rt, n, channels, table_rows(features).itemsize))]
     if extra is not None:
-        tables.append((extra, None, channel_groups(rt, n, extra.shape[1])))
+        tables.append((extra, None, channel_groups(rt, n, extra.shape[1], table_rows(extra).itemsize)))
     cstride = max(channel_layout(groups[0].stop - groups[0].start)[2] for _, _, groups in tables)
     parts: list[tuple[Selection, list[torch.Tensor], torch.Tensor]] = []
     for rays in ray_sets(rt, view.width, view.height, view.pixels, view.k, cstride):

@@ -15,7 +15,7 @@ from ..runtime import channel_layout, check_buffer, device_rows, host_empty, tri
 from ..stages.binning import RenderMeta
 from ..stages.select import check_pixels, check_sampler
 from ..stages.vrender import render_fused
-from .autograd import View, host_rows
+from .autograd import View, host_rows, table_rows
 from .cache import SelectionCache
 from .engine import background_tensor, feature_tensor, gaussian_tensors, render_view, sh_colours
 from .plan import rasterize_plan
@@ -63,7 +63,10 @@ def rasterize(means, quats, scales, opacities, features, viewmat, K, width: int,
             SH coefficients [N,(d+1)^2,3] (d >= sh_degree; the first (sh_degree+1)^2 are used)
             evaluated per view into RGB (the colour stage, as gsplat's ``colors`` with ``sh_degree``).
             C-contiguous float32 rows of a multiple of 16 channels are read in place on CPU
-            devices; rows starting on a 64-byte line (torch's tensors) read fastest.
+            devices; rows starting on a 64-byte line (torch's tensors) read fastest. A float16
+            table (torch or numpy) is read as half and blended in float32: half the memory and
+            bytes read, the image within float16 rounding of the float32 table's; its gradient
+            is float16.
         viewmat: [4,4] world-to-camera (OpenCV axes: x right, y down, z forward).
         K: [3,3] intrinsics in pixels. width, height: image size in pixels.
         sampler: "volume" (full alpha blending, V-Render), "quantile" (Q-Render, Algorithm 1 with
@@ -82,7 +85,7 @@ def rasterize(means, quats, scales, opacities, features, viewmat, K, width: int,
             of recomputed.
 
     Returns:
-        render [H,W,C] (or [P,C] for ``pixels``) float32, alpha [H,W,1] (or [P,1]): 1 - the
+        render [H,W,C] (or [P,C] for ``pixels``) float32 (float64 for float64 features), alpha [H,W,1] (or [P,1]): 1 - the
         transmittance where the ray's walk stopped (for quantile the walk stops once T < 1/(K+1)),
         and a meta mapping (a :class:`qr_cl.stages.binning.RenderMeta`: host copies made on first
         access; a dict for no Gaussians) with means2d [N,2] (px), conics [N,3], depths [N] (camera
@@ -148,7 +151,7 @@ def render_volume_fused(means, quats, scales, opacities, features, viewmat, K, w
     cstride = channel_layout(channels)[2]
     check_buffer(plan.runtime, 4 * height * width * cstride, f"the fused V-Render image of {width}x{height} "
                  f"px x {cstride} channels (rasterize(..., sampler='volume') renders it in chunks)")
-    with device_rows(plan.runtime, host_rows(feats), cstride) as rows:
+    with device_rows(plan.runtime, table_rows(feats), cstride) as rows:
         image, alpha, depth = render_fused(plan, rows, channels, None if bg is None else bg.numpy(),
                                            out=host_empty((height, width, cstride)))
     trim_device_pool(plan.runtime)

@@ -1,5 +1,6 @@
 """The render check a device passes before qr-cl renders on it: a tiny scene through every
-sampler (forward and feature backward) and the fused V-Render, against the float64 twins.
+sampler (forward and feature backward), a float16 table through Q-Render and the fused V-Render,
+against the float64 twins.
 
 It catches drivers that build and run the kernels but compute something else (the loop probe of
 :func:`qr_cl.runtime.trial_run` catches loops ended early). A device that fails is refused with
@@ -68,12 +69,13 @@ def render_check() -> list[str]:
     from .rasterize import rasterize, render_volume_fused
     geometry, features, grad, cam = _scene()
     pixels = image_pixels(WIDTH, HEIGHT)
-    failures = []
+    failures, twins = [], {}
     for sampler in SAMPLERS:
         f = torch.from_numpy(features).requires_grad_(True)
         image, _, meta = rasterize(*geometry, f, cam.viewmat, cam.K, WIDTH, HEIGHT, sampler=sampler, k=K)
         (image.reshape(-1, CHANNELS) * torch.from_numpy(grad)).sum().backward()
-        twin = select_ref.select(meta, meta["tile_ranges"], meta["flatten_ids"], pixels, WIDTH, sampler, K)
+        twin = twins[sampler] = select_ref.select(meta, meta["tile_ranges"], meta["flatten_ids"], pixels, WIDTH,
+                                                  sampler, K)
         want = blend_ref.blend(twin["ids"], twin["weights"], features)
         want_grad = np.zeros(features.shape)
         valid = twin["ids"] >= 0
@@ -83,6 +85,12 @@ def render_check() -> list[str]:
             share = _differing(got, ref)
             if share > DIFFERING_PIXELS:
                 failures.append(f"{sampler} {what}: {share:.0%} of its rows differ from the float64 twin")
+    half = features.astype(np.float16)                               # read as half (vload_half)
+    image, _, _ = rasterize(*geometry, half, cam.viewmat, cam.K, WIDTH, HEIGHT, sampler="quantile", k=K)
+    want = blend_ref.blend(twins["quantile"]["ids"], twins["quantile"]["weights"], half.astype(np.float64))
+    share = _differing(image.numpy().reshape(-1, CHANNELS), want)
+    if share > DIFFERING_PIXELS:
+        failures.append(f"quantile image of a float16 table: {share:.0%} of its rows differ from the float64 twin")
     image, _, meta = render_volume_fused(*geometry, features, cam.viewmat, cam.K, WIDTH, HEIGHT)
     want = vrender_ref.vrender(meta, meta["tile_ranges"], meta["flatten_ids"], features, WIDTH, HEIGHT)[0]
     share = _differing(image.numpy().reshape(-1, CHANNELS), want.reshape(-1, CHANNELS))

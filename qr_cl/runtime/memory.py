@@ -221,19 +221,21 @@ def host_output(rt: Runtime, array: np.ndarray):
 @contextmanager
 def device_rows(rt: Runtime, rows: np.ndarray, cstride: int) -> Iterator[cla.Array]:
     """Rows [R, C] (C <= cstride; a numpy array, e.g. ``tensor.detach().numpy()``) as read-only
-    float32 [R, cstride] device rows for the block, copied only when they have to be.
+    [R, cstride] device rows for the block, float16 for float16 rows (a half feature table, see
+    ``HALF_ROWS`` in kernels/common.h), float32 for any other dtype; copied only when they have to be.
 
-    Float32 C-contiguous rows with C == cstride are used in place (zero-copy on devices sharing
-    host memory, one copy into a pooled device array elsewhere); other rows are first converted
-    and padded with zero columns into a pooled host array (:func:`host_empty`). The kernels must
-    not write to them.
+    C-contiguous rows of that dtype with C == cstride are used in place (zero-copy on devices
+    sharing host memory, one copy into a pooled device array elsewhere); other rows are first
+    converted and padded with zero columns into a pooled host array (:func:`host_empty`). The
+    kernels must not write to them.
     """
     rows = np.asarray(rows)
     if rows.ndim != 2 or rows.shape[1] > cstride:
         raise ValueError(f"rows must be [R, C] with C <= {cstride}, got {rows.shape}")
-    check_buffer(rt, 4 * rows.shape[0] * cstride, f"{rows.shape[0]} rows x {cstride} channels")
-    if rows.dtype != np.float32 or rows.shape[1] != cstride or not rows.flags.c_contiguous:
-        padded = host_empty((rows.shape[0], cstride))
+    dtype = np.dtype(np.float16 if rows.dtype == np.float16 else np.float32)
+    check_buffer(rt, dtype.itemsize * rows.shape[0] * cstride, f"{rows.shape[0]} rows x {cstride} {dtype} channels")
+    if rows.dtype != dtype or rows.shape[1] != cstride or not rows.flags.c_contiguous:
+        padded = host_empty((rows.shape[0], cstride), dtype)
         padded[:, :rows.shape[1]] = rows
         padded[:, rows.shape[1]:] = 0
         rows = padded

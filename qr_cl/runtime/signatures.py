@@ -20,7 +20,7 @@ import numpy as np
 #: Element dtype of the OpenCL C scalar types a kernel argument may have (vectors: their base).
 CL_TYPES = {"char": np.int8, "uchar": np.uint8, "short": np.int16, "ushort": np.uint16,
             "int": np.int32, "uint": np.uint32, "long": np.int64, "ulong": np.uint64,
-            "float": np.float32}
+            "half": np.float16, "float": np.float32}
 
 _IDENT = re.compile(r"[A-Za-z_]\w*")
 _SPACES = {"__global", "global", "__constant", "constant", "__local", "local", "__private", "private"}

@@ -21,10 +21,16 @@ OWNER_BINS = 4096     # ... whose Gaussian ranges are cut from a histogram of th
 CPU_GROUP_ROWS = TILE  # CPU shapes: blend work-groups of a tile row of rays (or dF rows) x all chunks
 
 
-def _check_rows(array: cla.Array, rows: int, cstride: int, name: str) -> None:
-    if array.shape != (rows, cstride) or array.dtype != np.float32:
-        raise ValueError(f"{name} must be float32 [{rows}, {cstride}] on the device, got "
-                         f"{array.dtype} {array.shape}")
+def _check_rows(array: cla.Array, rows: int, cstride: int, name: str, half: bool = False) -> None:
+    if array.shape != (rows, cstride) or array.dtype not in ((np.float32, np.float16) if half else (np.float32,)):
+        raise ValueError(f"{name} must be {'float32 or float16' if half else 'float32'} [{rows}, {cstride}] "
+                         f"on the device, got {array.dtype} {array.shape}")
+
+
+def row_defines(features: cla.Array) -> dict:
+    """The build defines of a kernel that reads the feature table ``features``: ``HALF_ROWS``
+    for a float16 table (read as half, blended in float: kernels/common.h), none for float32."""
+    return {"HALF_ROWS": 1} if features.dtype == np.float16 else {}
 
 
 def work_groups(rt: Runtime, rows: int, n_chunks: int) -> tuple[int, tuple[int, int] | None]:
@@ -41,7 +47,8 @@ def blend_forward(sel: Selection, features: cla.Array, channels: int,
                   background: np.ndarray | None = None, out: cla.Array | None = None) -> cla.Array:
     """image [P, cstride] = sum_j w[p,j] features[id[p,j]] (+ t_rem[p] * background).
 
-    features: float32 [N, cstride] device rows (cstride from channel_layout(channels));
+    features: float32 or float16 [N, cstride] device rows (cstride from channel_layout(channels);
+    a float16 table is read as half and blended in float32);
     background: [channels] or None (no background term); out: an optional float32 [P, cstride]
     device array to write into (else one from the runtime's memory pool).
     Rays as in the Selection; for the full image row p = y * width + x. A deferred selection
@@ -49,7 +56,7 @@ def blend_forward(sel: Selection, features: cla.Array, channels: int,
     """
     rt = sel.plan.runtime
     vw, nv, cstride = channel_layout(channels, rt.gpu_shaped)
-    _check_rows(features, sel.n_gaussians, cstride, "features")
+    _check_rows(features, sel.n_gaussians, cstride, "features", half=True)
     check_buffer(rt, 4 * sel.n_rays * cstride, f"the image of {sel.n_rays} rays x {cstride} channels")
     image = device_empty(rt, (sel.n_rays, cstride), np.float32) if out is None else out
     _check_rows(image, sel.n_rays, cstride, "out")
@@ -59,7 +66,7 @@ def blend_forward(sel: Selection, features: cla.Array, channels: int,
               use_bg=background is not None, stream=streamed(image.nbytes))
     if sel.pending is not None:
         launch, sel.pending = sel.pending, None
-        launch(defines={"VW": vw, "NV": nv, "BLEND_ROWS": 1}, features=features, n_rows=sel.n_gaussians,
+        launch(defines={"VW": vw, "NV": nv, "BLEND_ROWS": 1, **row_defines(features)}, features=features, n_rows=sel.n_gaussians,
                cstride=cstride, image=image, **bg)
         return image
     size, full = sel.launch()
@@ -68,7 +75,7 @@ def blend_forward(sel: Selection, features: cla.Array, channels: int,
     # CPU shapes: for whole images a group's rays are a tile row, whose feature rows stay in cache
     # over its chunks; always, the groups keep PoCL's per-group private arrays small
     size, local = work_groups(rt, size, n_chunks)
-    rt.launch("blend", (size, n_chunks), defines={"VW": vw, "NV": nv}, local_size=local,
+    rt.launch("blend", (size, n_chunks), defines={"VW": vw, "NV": nv, **row_defines(features)}, local_size=local,
               offsets=sel.offsets, count=sel.count, n_entries=sel.ids.size, sel_ids=sel.ids, sel_w=sel.weights,
               features=features, n=sel.n_gaussians, cstride=cstride, full=full, n_rays=sel.n_rays, width=plan.width,
               height=plan.height, tiles_x=plan.tiles_x, t_rem=sel.t_rem, image=image, **bg)
@@ -163,20 +170,21 @@ def blend_backward_alpha(sel: Selection, features: cla.Array, dimage: cla.Array,
     ``blend_backward_alpha`` in kernels/blend.cl for the formulas of volume and of the normalized
     K samplers).
 
-    features: float32 [N, cstride] device rows the image was blended from; dimage: float32
+    features: float32 or float16 [N, cstride] device rows the image was blended from; dimage: float32
     [P, cstride] device rows of dL/dimage; d_trem: [P] dL/d(final transmittance) of each ray
     (volume only: the background weight and 1 - alpha; None = 0; ignored by the K samplers, whose
     background weight does not depend on the alphas).
     """
     rt = sel.plan.runtime
     vw, _, cstride = channel_layout(channels, rt.gpu_shaped)
-    _check_rows(features, sel.n_gaussians, cstride, "features")
+    _check_rows(features, sel.n_gaussians, cstride, "features", half=True)
     _check_rows(dimage, sel.n_rays, cstride, "dimage")
     d_alpha = device_empty(rt, sel.ids.shape, np.float32)
     if sel.n_rays == 0:
         return d_alpha
     d_trem = np.zeros(sel.n_rays, np.float32) if d_trem is None else np.asarray(d_trem, np.float32)
-    rt.launch("blend_backward_alpha", sel.n_rays, defines={"VW": vw, "NV": 1}, n_rays=sel.n_rays,
+    rt.launch("blend_backward_alpha", sel.n_rays, defines={"VW": vw, "NV": 1, **row_defines(features)},
+              n_rays=sel.n_rays,
               **_ray_pixels(sel), offsets=sel.offsets, count=sel.count, n_entries=sel.ids.size,
               n=sel.n_gaussians, sel_ids=sel.ids, sel_w=sel.weights,
               splats=sel.plan.splats, features=features, dimage=dimage, cstride=cstride,

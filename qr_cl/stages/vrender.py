@@ -9,6 +9,7 @@ import pyopencl.array as cla
 from ..runtime import (BLOCK_GROUP, TILE, channel_layout, check_buffer, device_empty, host_empty, host_output,
                        padded_vector, streamed, to_device)
 from .binning import RasterPlan
+from .blend import row_defines
 
 
 def render_fused(plan: RasterPlan, features: cla.Array, channels: int,
@@ -16,7 +17,8 @@ def render_fused(plan: RasterPlan, features: cla.Array, channels: int,
                  out: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Blend every Gaussian V-Render uses (alpha >= 1/255, until T <= 1e-4) in one kernel.
 
-    features [N, cstride] on the device with cstride from :func:`channel_layout` (channels);
+    features [N, cstride] float32 or float16 (read as half, blended in float32) on the device with
+    cstride from :func:`channel_layout` (channels);
     background [channels] or None. Returns image [H,W,channels], alpha [H,W,1] (1 - T) and
     expected depth [H,W,1] (sum of w_i z_i / (1 - T); 0 where nothing was hit), float32.
     ``out``: an optional C-contiguous float32 [H,W,cstride] host array to render into (reusing one
@@ -25,8 +27,9 @@ def render_fused(plan: RasterPlan, features: cla.Array, channels: int,
     """
     rt = plan.runtime
     vw, nv, cstride = channel_layout(channels, rt.gpu_shaped)
-    if features.shape[-1] != cstride:
-        raise ValueError(f"features have row length {features.shape[-1]}, expected {cstride}")
+    if features.shape[-1] != cstride or features.dtype not in (np.float32, np.float16):
+        raise ValueError(f"features must be float32 or float16 rows of length {cstride}, got {features.dtype} "
+                         f"rows of length {features.shape[-1]}")
     h, w = plan.height, plan.width
     check_buffer(rt, 4 * h * w * cstride, f"the fused V-Render image of {w}x{h} px x {cstride} channels "
                  "(rasterize(..., sampler='volume') renders it in chunks)")
@@ -35,7 +38,7 @@ def render_fused(plan: RasterPlan, features: cla.Array, channels: int,
         raise ValueError(f"out must be a C-contiguous float32 array of shape {(h, w, cstride)}")
     alpha, depth = device_empty(rt, h * w), device_empty(rt, h * w)
     with host_output(rt, image) as image_buf:
-        rt.launch("vrender", plan.tiles_x * plan.tiles_y * TILE, defines={"VW": vw, "NV": nv},
+        rt.launch("vrender", plan.tiles_x * plan.tiles_y * TILE, defines={"VW": vw, "NV": nv, **row_defines(features)},
                   local_size=BLOCK_GROUP, ranges=plan.ranges, ids=plan.ids, splats=plan.splats, features=features,
                   cstride=cstride, width=w, height=h, tiles_x=plan.tiles_x,
                   background=to_device(rt, padded_vector(background, channels, cstride)),

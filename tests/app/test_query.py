@@ -197,3 +197,18 @@ def test_bad_query_input_is_one_line(tiny_room, checkpoint, tmp_path, capsys):
         err = capsys.readouterr().err
         assert err.startswith("qr-cl: error: ") and message in err and err.count("\n") == 1, (argv, err)
     assert not (tmp_path / "q").exists()                                 # refused before writing anything
+
+
+def test_network_features_in_half_render_as_their_float_values(tiny_room, checkpoint):
+    """GS-Net's output kept as float16 for rendering: its float32 values rounded, rendered as the
+    float32 table of those values."""
+    import qr_cl
+    from qr_cl.app.training.network import network_features
+    data = load_scene_folder(tiny_room)
+    full = network_features(checkpoint, data)
+    half = network_features(checkpoint, data, np.float16)
+    assert half.dtype == np.float16 and np.array_equal(half, full.astype(np.float16))
+    g, cam = data.gaussians, data.frames[0].camera
+    images = [qr_cl.rasterize(g.means, g.quats, g.scales, g.opacities, table, cam.viewmat, cam.K, cam.width,
+                              cam.height, sampler="quantile", k=20)[0] for table in (half, half.astype(np.float32))]
+    assert images[0].numpy().tobytes() == images[1].numpy().tobytes()

@@ -140,6 +140,15 @@ def exercise() -> None:
         assert np.abs(alpha.numpy() - ref_alpha.numpy()).max() < 1e-5
         print(f"render_volume_fused background={background is not None}: ok "
               f"(densest ray {densest} Gaussians)", flush=True)
+    half = torch.from_numpy(feats).half()                     # a float16 table: the HALF_ROWS builds
+    for sampler in ("volume", "quantile"):
+        inputs = [torch.from_numpy(a).requires_grad_(True) for a in geo] + [half.clone().requires_grad_(True)]
+        img, _, _ = qr_cl.rasterization(*inputs, viewmats, Ks, W, H, sampler=sampler, k=4)
+        img.sum().backward()
+        assert all(bool(torch.isfinite(t.grad.float()).all()) for t in inputs)
+    qr_cl.render_volume_fused(*geo, half, cam.viewmat, cam.K, W, H)
+    print("float16 tables: rasterization volume and quantile forward+backward, render_volume_fused: ok",
+          flush=True)
     wide = rng.normal(size=(n, 544)).astype(np.float32)      # two channel chunks of 17 vectors
     qr_cl.render_volume_fused(*geo, wide, cam.viewmat, cam.K, W, H)
     qr_cl.rasterize(*geo, wide, cam.viewmat, cam.K, W, H, sampler="quantile", k=4)
@@ -155,8 +164,9 @@ def exercise() -> None:
     gpu_shaped, rt.gpu_shaped = rt.gpu_shaped, False   # CPU shapes: each K sampler with the blend fused in
     for sampler in ("quantile", "topk", "stratified"):
         for px, background in ((None, None), (pixels, bg)):
-            qr_cl.rasterize(*geo, feats, cam.viewmat, cam.K, W, H, sampler=sampler, k=4,
-                            background=background, pixels=px)
+            for table in (feats, half):
+                qr_cl.rasterize(*geo, table, cam.viewmat, cam.K, W, H, sampler=sampler, k=4,
+                                background=background, pixels=px)
             print(f"rasterize {sampler} CPU shapes (selection with the blend) pixels={px is not None}: ok",
                   flush=True)
     rt.gpu_shaped = gpu_shaped

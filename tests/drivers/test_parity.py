@@ -74,6 +74,10 @@ def render_all(g, cam) -> dict[str, np.ndarray]:
         (img * weights).sum().backward()
         out.update({f"{sampler}/image": img.detach().numpy(), f"{sampler}/alpha": alpha.numpy(),
                     f"{sampler}/dfeatures": f.grad.numpy()})
+    f = torch.from_numpy(feats).half().requires_grad_(True)                      # a float16 table
+    img, _, _ = qr_cl.rasterize(*geometry, f, cam.viewmat, cam.K, W, H, sampler="quantile", k=K)
+    (img * weights).sum().backward()
+    out.update({"half/image": img.detach().numpy(), "half/dfeatures": f.grad.float().numpy()})
     pixels = np.stack([rng.integers(0, W, 700), rng.integers(0, H, 700)], 1)
     f = torch.from_numpy(feats).requires_grad_(True)
     img, _, _ = qr_cl.rasterize(*geometry, f, cam.viewmat, cam.K, W, H, sampler="quantile", k=K, pixels=pixels)
@@ -124,7 +128,7 @@ def scenes_here(shared: bool) -> list[str]:
 
 
 #: Outputs of samplers that select K Gaussians per ray at transmittance boundaries.
-K_SAMPLED = ("quantile/", "topk/", "stratified/", "pixels/", "rasterization-quantile/")
+K_SAMPLED = ("quantile/", "topk/", "stratified/", "pixels/", "half/", "rasterization-quantile/")
 #: The share of rows (pixels, or Gaussians of a gradient) of a K sampler's output that may differ:
 #: a ray whose transmittance meets a boundary at float rounding selects differently under another
 #: compiler (the dense room's stratified sampler on Intel's runtime: 2 of 19,200 rays).
@@ -194,7 +198,7 @@ def test_intel_equals_pocl_on_the_dense_room(shape, reference, tmp_path):
 #: The kernel-against-twin test modules that also run on the other implementations (paths under tests/).
 KERNEL_TESTS = ["stages/test_project.py", "stages/test_binning.py", "stages/test_select.py", "stages/test_transpose.py",
                 "stages/test_blend.py", "stages/test_sh.py", "stages/test_vrender.py", "render/test_rasterize.py",
-                "render/test_rasterization.py", "runtime/test_signatures.py"]
+                "render/test_rasterization.py", "render/test_half_tables.py", "runtime/test_signatures.py"]
 
 
 def test_kernel_tests_pass_on_intel(tmp_path, data_dir):

@@ -60,6 +60,23 @@ def test_a_device_rendering_wrong_rays_is_refused(monkeypatch, tmp_path):
     assert selfcheck.checked_runtime() is rt
 
 
+def test_a_device_misreading_half_rows_is_refused(monkeypatch, tmp_path):
+    """A driver whose vload_half is wrong renders float16 tables wrong, float32 ones right."""
+    monkeypatch.setenv("QR_CL_CACHE", str(tmp_path))
+    monkeypatch.setattr(selfcheck, "_PASSED", set())
+    rt = runtime()
+    launch = type(rt).launch
+
+    def misread(self, name, *args, **kwargs):
+        launch(self, name, *args, **kwargs)
+        if "HALF_ROWS" in (kwargs.get("defines") or {}):
+            kwargs["image"].fill(0)
+    monkeypatch.setattr(type(rt), "launch", misread)
+    with pytest.raises(selfcheck.DeviceCheckError) as err:
+        selfcheck.checked_runtime()
+    assert "quantile image of a float16 table" in str(err.value) and "gradient" not in str(err.value)
+
+
 def test_self_check_setting_is_validated(monkeypatch):
     monkeypatch.setenv("QR_CL_SELF_CHECK", "maybe")
     with pytest.raises(ValueError, match="QR_CL_SELF_CHECK='maybe': use on or off"):

@@ -10,7 +10,8 @@ from qr_cl.runtime.constants import KERNEL_CONSTANTS
 from qr_cl.runtime.device import kernel_files, kernel_source
 from qr_cl.runtime.signatures import SignatureError, kernel_signatures, preprocess
 
-ROWS = [{"VW": 16, "NV": 4}, {"VW": 1, "NV": 1}, {"VW": 4, "NV": 2}]
+ROWS = [{"VW": 16, "NV": 4}, {"VW": 1, "NV": 1}, {"VW": 4, "NV": 2}, {"VW": 16, "NV": 4, "HALF_ROWS": 1},
+        {"VW": 1, "NV": 1, "HALF_ROWS": 1}]
 #: Define sets the stages build each kernel file with (the shared constants come on top).
 BUILDS = {"blend.cl": ROWS, "vrender.cl": ROWS, "sh.cl": [{"DEGREE": d} for d in range(4)],
           "select.cl": [{}] + [{**r, "BLEND_ROWS": 1} for r in ROWS], "roofline.cl": [{}, {"ITERS": 8}]}

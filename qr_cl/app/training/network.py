@@ -50,13 +50,14 @@ def load_checkpoint(path: Path | str) -> dict:
     return ckpt
 
 
-def network_features(checkpoint: Path | dict, scene: SceneData) -> np.ndarray:
+def network_features(checkpoint: Path | dict, scene: SceneData, dtype: np.dtype | type = np.float32) -> np.ndarray:
     """GS-Net features [N,C] (eval mode) of ``scene`` from a training checkpoint (a path, or the
-    dict :func:`load_checkpoint` returns)."""
+    dict :func:`load_checkpoint` returns), in ``dtype``: float16 keeps a table for rendering in
+    half the memory (the renderers read it as half and blend in float32)."""
     ckpt = checkpoint if isinstance(checkpoint, dict) else load_checkpoint(checkpoint)
     cfg = ckpt["config"]
     net = build_net(cfg["net"], cfg["feature_dim"], cfg["grid_size"])
     net.load_state_dict(ckpt["model"])
     net.eval()
     with torch.no_grad():
-        return net(net.prepare([scene.gaussians])).numpy()
+        return net(net.prepare([scene.gaussians])).numpy().astype(dtype, copy=False)
