@@ -69,13 +69,12 @@ def render_check() -> list[str]:
     from .rasterize import rasterize, render_volume_fused
     geometry, features, grad, cam = _scene()
     pixels = image_pixels(WIDTH, HEIGHT)
-    failures, twins = [], {}
+    failures = []
     for sampler in SAMPLERS:
         f = torch.from_numpy(features).requires_grad_(True)
         image, _, meta = rasterize(*geometry, f, cam.viewmat, cam.K, WIDTH, HEIGHT, sampler=sampler, k=K)
         (image.reshape(-1, CHANNELS) * torch.from_numpy(grad)).sum().backward()
-        twin = twins[sampler] = select_ref.select(meta, meta["tile_ranges"], meta["flatten_ids"], pixels, WIDTH,
-                                                  sampler, K)
+        twin = select_ref.select(meta, meta["tile_ranges"], meta["flatten_ids"], pixels, WIDTH, sampler, K)
         want = blend_ref.blend(twin["ids"], twin["weights"], features)
         want_grad = np.zeros(features.shape)
         valid = twin["ids"] >= 0
@@ -86,8 +85,9 @@ def render_check() -> list[str]:
             if share > DIFFERING_PIXELS:
                 failures.append(f"{sampler} {what}: {share:.0%} of its rows differ from the float64 twin")
     half = features.astype(np.float16)                               # read as half (vload_half)
-    image, _, _ = rasterize(*geometry, half, cam.viewmat, cam.K, WIDTH, HEIGHT, sampler="quantile", k=K)
-    want = blend_ref.blend(twins["quantile"]["ids"], twins["quantile"]["weights"], half.astype(np.float64))
+    image, _, meta = rasterize(*geometry, half, cam.viewmat, cam.K, WIDTH, HEIGHT, sampler="quantile", k=K)
+    twin = select_ref.select(meta, meta["tile_ranges"], meta["flatten_ids"], pixels, WIDTH, "quantile", K)
+    want = blend_ref.blend(twin["ids"], twin["weights"], half.astype(np.float64))
     share = _differing(image.numpy().reshape(-1, CHANNELS), want)
     if share > DIFFERING_PIXELS:
         failures.append(f"quantile image of a float16 table: {share:.0%} of its rows differ from the float64 twin")
