@@ -67,6 +67,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scale", type=int, nargs="*", metavar="N",
                         help="instead of the sweep: per-stage time and peak memory against the number of Gaussians "
                              f"(dense room, 640x480, Q-Render K=40, C=512; default N: {' '.join(map(str, SCALES))})")
+    parser.add_argument("--table-dtype", choices=("float32", "float16"), default="float32",
+                        help="the feature tables' dtype of --scale (default float32)")
     parser.add_argument("--implementations", action="store_true",
                         help="run the sweep on PoCL and on every implementation tests/drivers/install.sh "
                              "installed, one after the other, and write implementations.md side by side")
@@ -85,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
     watch = Stopwatch()
     mode = "smoke" if args.smoke else "quick" if args.quick else "full"
     if args.scale is not None:
-        run_scale(out, tuple(args.scale) or SCALES)
+        run_scale(out, tuple(args.scale) or SCALES, table_dtype=args.table_dtype)
         print((out / "scale.md").read_text())
         print(f"finished in {watch.seconds:.0f} s. Report: {out.resolve()} (scale.json, scale.md, scale.png)")
         return 0

@@ -64,6 +64,40 @@ def check_buffer(rt: Runtime, nbytes: int, what: str) -> None:
                                "(CL_DEVICE_MAX_MEM_ALLOC_SIZE)")
 
 
+#: Host allocations from this many bytes on are checked against the memory the system has free.
+HOST_CHECK_BYTES = 256 << 20
+
+
+class HostMemoryError(MemoryError):
+    """A large host allocation refused before it is made because the system has not that much
+    memory available: the process gets a message naming the sizes instead of an OOM kill."""
+
+
+def available_host_bytes() -> int | None:
+    """The memory the system can give without swapping (Linux: MemAvailable of /proc/meminfo, in
+    bytes), or None where it does not say."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) << 10
+    except OSError:
+        return None
+    return None
+
+
+def check_host_memory(nbytes: int, what: str) -> None:
+    """HostMemoryError unless ``nbytes`` (at least HOST_CHECK_BYTES; smaller ones are not
+    checked) fit in the host memory available now; ``what`` names the allocation."""
+    if nbytes < HOST_CHECK_BYTES:
+        return
+    available = available_host_bytes()
+    if available is not None and nbytes > available:
+        raise HostMemoryError(f"{what} needs {nbytes / 1e9:.2f} GB of host memory; the system has "
+                              f"{available / 1e9:.2f} GB available (MemAvailable). Render fewer rays at a time "
+                              "(pixels=...), fewer channels, or a float16 table")
+
+
 def check_channels(channels: int) -> None:
     """ValueError unless 1 <= channels <= MAX_CHANNELS."""
     if not 1 <= channels <= MAX_CHANNELS:
@@ -118,9 +152,13 @@ def padded_vector(values, channels: int, cstride: int) -> np.ndarray:
 
 
 def _checked(rt: Runtime, shape, dtype) -> None:
-    """BufferLimitError (naming the array's shape and bytes) unless it fits in one buffer of rt."""
+    """BufferLimitError (naming the array's shape and bytes) unless it fits in one buffer of rt;
+    HostMemoryError where the device's memory is the host's and too little of it is available."""
     shape = (int(shape),) if np.isscalar(shape) else tuple(int(s) for s in shape)
-    check_buffer(rt, math.prod(shape) * np.dtype(dtype).itemsize, f"a device array of {shape} {np.dtype(dtype)}")
+    nbytes, what = math.prod(shape) * np.dtype(dtype).itemsize, f"a device array of {shape} {np.dtype(dtype)}"
+    check_buffer(rt, nbytes, what)
+    if rt.host_unified:
+        check_host_memory(nbytes, what)
 
 
 def device_empty(rt: Runtime, shape, dtype=np.float32) -> cla.Array:
@@ -300,15 +338,18 @@ class HostPool:
             self._slots = [self._slots[i] for i in range(len(self._slots)) if not self._free(i)]
 
     def empty(self, shape, dtype=np.float32) -> np.ndarray:
-        """An uninitialised C-contiguous array (page-aligned when pooled)."""
+        """An uninitialised C-contiguous array (page-aligned when pooled); HostMemoryError when a
+        fresh one would exceed the memory available (:func:`check_host_memory`)."""
         dtype = np.dtype(dtype)
         shape = (int(shape),) if np.isscalar(shape) else tuple(int(s) for s in shape)
         nbytes = math.prod(shape) * dtype.itemsize
         if nbytes < self.min_bytes:
             return np.empty(shape, dtype)
+        what = f"a host array of {shape} {dtype}"
         with self._lock:
-            raw = self._take(self.size_class(nbytes + self.ALIGN))
+            raw = self._take(self.size_class(nbytes + self.ALIGN), what)
         if raw is None:
+            check_host_memory(nbytes, what)
             return np.empty(shape, dtype)
         start = -raw.__array_interface__["data"][0] % self.ALIGN
         return raw[start:start + nbytes].view(dtype).reshape(shape)
@@ -325,7 +366,7 @@ class HostPool:
         shift = max(nbytes.bit_length() - 4, 0)
         return -(-nbytes >> shift) << shift
 
-    def _take(self, size: int) -> np.ndarray | None:
+    def _take(self, size: int, what: str) -> np.ndarray | None:
         slots = self._slots
         for i in range(len(slots)):
             if slots[i].nbytes == size and self._free(i):
@@ -344,6 +385,7 @@ class HostPool:
                 i += 1
         if total + size > self.max_bytes:
             return None
+        check_host_memory(size, what)
         slots.append(np.empty(size, np.uint8))
         return slots[-1]
 

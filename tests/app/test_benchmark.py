@@ -81,6 +81,10 @@ def test_scale_sweep_measures_every_stage_and_memory_against_n(tmp_path, capsys)
     assert all(m["peak_bytes"] > 0 and m["table_bytes"] == m["n_gaussians"] * 16 * 4 for m in report["memory"])
     table = (tmp_path / "scale.md").read_text()
     assert "| blend-backward |" in table and "| peak memory, GB |" in table and f"N={ns[1]:,}" in table
+    assert "| one call over its table, GB |" in table
     assert (tmp_path / "scale.png").stat().st_size > 0
-    assert main(["bench", "--scale", "2000", "--out", str(tmp_path / "cli")]) == 0
+    assert main(["bench", "--scale", "2000", "--table-dtype", "float16", "--out", str(tmp_path / "cli")]) == 0
     assert "scale.md" in capsys.readouterr().out
+    half = json.loads((tmp_path / "cli" / "scale.json").read_text())
+    assert half["table_dtype"] == "float16" and half["memory"][0]["table_bytes"] == half["memory"][0]["n_gaussians"] * 1024
+    assert {r.get("table_dtype") for r in half["rows"] if r["stage"] in ("blend-forward", "end-to-end")} == {"float16"}

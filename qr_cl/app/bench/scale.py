@@ -1,11 +1,13 @@
 """``qr-cl bench --scale``: how each stage's cost grows with the number of Gaussians N.
 
 The dense indoor room of :func:`qr_cl.app.scenes.procedural.dense_room` (layered semi-transparent
-walls and floaters) at N = 300k, 1M and 3M, one 640x480 camera, 512-D float32 features and
-Q-Render K=40. Per N: projection, binning+sort, selection, blend forward and the feature
-backward (:class:`qr_cl.app.bench.sweep.Sweep`'s stage timings), the public call end to end,
-and the process's peak resident memory above its level before the scene was made (PoCL's
-buffers are host memory, so the device's arrays count too), with the feature table's own size.
+walls and floaters) at N = 300k, 1M and 3M, one 640x480 camera, 512-D features (float32, or
+float16 with ``table_dtype``) and Q-Render K=40. Per N: projection, binning+sort, selection,
+blend forward and the feature backward (:class:`qr_cl.app.bench.sweep.Sweep`'s stage timings),
+the public call end to end, the process's peak resident memory above its level before the scene
+was made (PoCL's buffers are host memory, so the device's arrays count too), the feature table's
+own size, and the peak of one public call above the level before it (the table resident): what
+a render costs beyond its table.
 
 The cost model it checks: projection and the tile sort are O(N) (every Gaussian is projected,
 each visible one keyed once per tile it touches); the selection walk is O(pixels x entries per
@@ -18,6 +20,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import torch
 from tqdm import tqdm
 
 from ...render.selfcheck import checked_runtime
@@ -34,9 +37,12 @@ STAGES = ("projection", "binning+sort", "selection", "blend-forward", "blend-bac
 
 
 def run_scale(out: Path, scales=SCALES, k: int = 40, channels: int = 512, size: tuple[int, int] = (640, 480),
-              rounds: int = 2) -> dict:
-    """Measure every N of ``scales`` (module docstring); write scale.json, scale.md and
-    scale.png into ``out`` and return the report {"rows", "memory", "k", "channels", "size"}."""
+              rounds: int = 2, table_dtype: str = "float32") -> dict:
+    """Measure every N of ``scales`` (module docstring) with feature tables of ``table_dtype``
+    ("float32" or "float16"); write scale.json, scale.md and scale.png into ``out`` and return
+    the report {"rows", "memory", "k", "channels", "size", "table_dtype"}."""
+    dtype = {"float32": torch.float32, "float16": torch.float16}[table_dtype]
+    itemsize = torch.finfo(dtype).bits // 8
     out.mkdir(parents=True, exist_ok=True)
     rt = checked_runtime()
     sweep = Sweep(rounds, {"bandwidth_bytes_s": roofline.stream_bandwidth(rt, 64), "fma_flops": roofline.fma_rate(rt)})
@@ -45,24 +51,26 @@ def run_scale(out: Path, scales=SCALES, k: int = 40, channels: int = 512, size: 
         with PeakMemory() as peak:
             scene = dense_view(n, *size)
             sweep.plan(scene)
-            sweep.sampler(scene, "quantile", k, stage_channels(rt, n, channels))
-            sweep.end_to_end(scene, SamplerRenderer("quantile", k), channels)
+            sweep.sampler(scene, "quantile", k, stage_channels(rt, n, channels, itemsize), dtype)
+            call = sweep.end_to_end(scene, SamplerRenderer("quantile", k), channels, dtype)
         memory.append({"n_gaussians": len(scene.gaussians), "peak_bytes": peak.above_base,
-                       "table_bytes": len(scene.gaussians) * channels * 4})
+                       "table_bytes": len(scene.gaussians) * channels * itemsize,
+                       "call_peak_bytes": call["call_peak_bytes"]})
         del scene
     rows = [r for r in sweep.rows if r["stage"] in STAGES]
-    report = {"k": k, "channels": channels, "size": list(size), "rows": rows, "memory": memory}
+    report = {"k": k, "channels": channels, "size": list(size), "rows": rows, "memory": memory,
+              "table_dtype": table_dtype}
     (out / "scale.json").write_text(json.dumps(report, indent=1))
     (out / "scale.md").write_text(scale_markdown(report))
     plot_scale(report, out / "scale.png")
     return report
 
 
-def stage_channels(rt, n: int, channels: int) -> int:
+def stage_channels(rt, n: int, channels: int, itemsize: int = 4) -> int:
     """The channels of the blend stages' rows at ``n`` Gaussians: ``channels``, halved until an
-    [n, C] float32 table fits one device buffer (the public call splits the table into such
-    channel groups itself; the stage rows time one group)."""
-    while channels > 16 and n * channel_layout(channels)[2] * 4 > rt.max_buffer_bytes:
+    [n, C] table of ``itemsize``-byte elements fits one device buffer (the public call splits the
+    table into such channel groups itself; the stage rows time one group)."""
+    while channels > 16 and n * channel_layout(channels)[2] * itemsize > rt.max_buffer_bytes:
         channels //= 2
     return channels
 
@@ -78,10 +86,13 @@ def scale_markdown(report: dict) -> str:
     blend_c = {n: next((r["channels"] for r in report["rows"] if r["n_gaussians"] == n and r["stage"] == "blend-forward"),
                        report["channels"]) for n in ns}
     w, h = report["size"]
+    dtype = report.get("table_dtype", "float32")
     lines = [f"# Cost against the number of Gaussians (dense room, {w}x{h}, Q-Render K={report['k']}, "
-             f"C={report['channels']} float32)", "",
+             f"C={report['channels']} {dtype})", "",
              "Minimum wall ms over the rounds after a warm-up; x: against the smallest N. Peak memory: resident "
-             "memory above the level before the scene was made (scene, plan, selection, feature table, image). "
+             "memory above the level before the scene was made (scene, plan, selection, feature table, image, "
+             "and the bench's own device copy of the table for the stage rows); one call over its table: the "
+             "peak of one public call above the level before it, the table resident. "
              "The blend rows time the largest table that fits one device buffer: C = " +
              ", ".join(f"{blend_c[n]} at N={n:,}" for n in ns) + "; end-to-end is the public call with all "
              f"{report['channels']} channels (split into such groups where needed).", "",
@@ -99,6 +110,10 @@ def scale_markdown(report: dict) -> str:
                  " | ".join(f"{m['peak_bytes'] / max(mem[0]['peak_bytes'], 1):.2f}" for m in mem[1:]) + " |")
     lines.append("| feature table, GB | " + " | ".join(f"{m['table_bytes'] / 1e9:.2f}" for m in mem) + " | " +
                  " | ".join(f"{m['table_bytes'] / mem[0]['table_bytes']:.2f}" for m in mem[1:]) + " |")
+    if all("call_peak_bytes" in m for m in mem):
+        lines.append("| one call over its table, GB | " + " | ".join(f"{m['call_peak_bytes'] / 1e9:.2f}" for m in mem)
+                     + " | " + " | ".join(f"{m['call_peak_bytes'] / max(mem[0]['call_peak_bytes'], 1):.2f}"
+                                          for m in mem[1:]) + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -115,7 +130,8 @@ def plot_scale(report: dict, path: Path) -> None:
     if first:
         ax.plot(ns, [first * n / ns[0] for n in ns], ":", color="gray", label="O(N) from projection")
     ax.set(xscale="log", yscale="log", xlabel="Gaussians N", ylabel="ms (min over rounds)",
-           title=f"dense room {report['size'][0]}x{report['size'][1]}, Q-Render K={report['k']}, C={report['channels']}")
+           title=f"dense room {report['size'][0]}x{report['size'][1]}, Q-Render K={report['k']}, "
+                 f"C={report['channels']} {report.get('table_dtype', 'float32')}")
     ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=110)

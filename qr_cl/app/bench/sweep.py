@@ -19,7 +19,7 @@ from ...runtime import channel_layout, padded_rows, to_device
 from ...stages import RasterPlan, bin_and_sort, blend_backward, blend_forward, project, render_fused, select
 from ..renderers import FUSED_NAME, FeatureRenderer
 from ..scenes.views import SceneView
-from ..timing import measure, warm_page_faults
+from ..timing import PeakMemory, measure, warm_page_faults
 from . import roofline
 from .jobs import Job
 
@@ -113,9 +113,10 @@ class Sweep:
         return self._row(scene, "looped-3ch", FUSED_NAME, 0, channels,
                          measure(run, rounds, warmup=0), loops=loops)
 
-    def sampler(self, scene: SceneView, sampler: str, k: int, channels: int) -> tuple[dict, dict]:
-        """Time selection, blend forward and blend backward for one sampler; return the selection
-        and blend forward rows."""
+    def sampler(self, scene: SceneView, sampler: str, k: int, channels: int,
+                dtype: torch.dtype = torch.float32) -> tuple[dict, dict]:
+        """Time selection, blend forward and blend backward for one sampler, the blend reading a
+        table of ``dtype`` (float32 or float16); return the selection and blend forward rows."""
         plan = self._plan_of(scene)
         kk = k if sampler != "volume" else 0
 
@@ -126,8 +127,11 @@ class Sweep:
         selection = self._row(scene, "selection", sampler, kk, 0, measure(do_select, self.rounds))
         sel = do_select()
         cstride = channel_layout(channels)[2]
-        feats = to_device(self.rt, padded_rows(np.random.default_rng(0).random(
-            (len(scene.gaussians), channels), dtype=np.float32), cstride))
+        table = random_features(len(scene.gaussians), channels, dtype).numpy()
+        if channels < cstride:
+            table = np.pad(table, ((0, 0), (0, cstride - channels)))
+        feats = to_device(self.rt, table, table.dtype)
+        del table
         image = cla.empty(self.rt.queue, (sel.n_rays, cstride), np.float32)
 
         def forward():
@@ -139,6 +143,7 @@ class Sweep:
         timing = measure(forward, self.rounds)
         device_bytes = plan.splats.nbytes + plan.ids.nbytes + sel.nbytes + feats.nbytes + image.nbytes
         fwd = self._row(scene, "blend-forward", sampler, kk, channels, timing, mean_entries=mean_k,
+                        table_dtype=str(dtype).removeprefix("torch."),
                         device_bytes=device_bytes, **self._roofline_fields(hit.size, mean_k, channels,
                                                                            timing["min_s"], sel.n_rays))
 
@@ -151,20 +156,26 @@ class Sweep:
                   **self._roofline_fields(hit.size, mean_k, channels, timing["min_s"], sel.n_rays))
         return selection, fwd
 
-    def end_to_end(self, scene: SceneView, renderer: FeatureRenderer, channels: int) -> dict:
+    def end_to_end(self, scene: SceneView, renderer: FeatureRenderer, channels: int,
+                   dtype: torch.dtype = torch.float32) -> dict:
         """Time the public call (projection to image) of one renderer (``rasterize`` through a
-        sampler, or ``render_volume_fused``) and count the minor page faults of a warm call
-        (``faults_per_call``, 0 when nothing is freshly allocated)."""
+        sampler, or ``render_volume_fused``) of a ``dtype`` table, count the minor page faults of a
+        warm call (``faults_per_call``, 0 when nothing is freshly allocated) and measure the peak
+        resident memory of one warm call above the level before it, the table resident
+        (``call_peak_bytes``)."""
         g, cam = scene.gaussians, scene.camera
-        feats = random_features(len(g), channels)
+        feats = random_features(len(g), channels, dtype)
         args = (g.means, g.quats, g.scales, g.opacities, feats, cam.viewmat, cam.K, cam.width, cam.height)
 
         def call():
             return renderer(*args)
         timing = measure(call, self.rounds)
         k = renderer.k if renderer.name in ("quantile", "topk") else 0
+        with PeakMemory() as peak:
+            call()
         return self._row(scene, "end-to-end", renderer.name, k, channels, timing,
-                         faults_per_call=warm_page_faults(call))
+                         faults_per_call=warm_page_faults(call), call_peak_bytes=peak.above_base,
+                         table_dtype=str(dtype).removeprefix("torch."))
 
     def training_path(self, scene: SceneView, k: int, channels: int, views: int = 4, rays: int = 2048) -> dict:
         """Time the renderer's part of a training step: ``views`` Q-Render K renders of ``rays``
@@ -250,10 +261,18 @@ class Sweep:
                 "fraction_of_roofline": limit / seconds}
 
 
-def random_features(n: int, channels: int) -> torch.Tensor:
-    """Random features [n, channels] in [0, 1) for the public calls, in torch's own memory as
-    GS-Net's outputs are: its rows start on 64-byte lines (large numpy arrays start 16 bytes past
-    one, which makes the blend's row loads straddle lines and measured slower end to end). The
-    device-buffer stages are timed from aligned rows too."""
-    rows = torch.from_numpy(np.random.default_rng(0).random((n, channels), dtype=np.float32))
-    return torch.empty(n, channels).copy_(rows)
+#: Rows of random features drawn at a time (no float32 temporary of a whole large table).
+RANDOM_ROWS = 1 << 16
+
+
+def random_features(n: int, channels: int, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    """Random features [n, channels] in [0, 1) of ``dtype`` (float32's values rounded) for the
+    public calls, in torch's own memory as GS-Net's outputs are: its rows start on 64-byte lines
+    (large numpy arrays start 16 bytes past one, which makes the blend's row loads straddle lines
+    and measured slower end to end). The device-buffer stages are timed from aligned rows too."""
+    rng = np.random.default_rng(0)
+    out = torch.empty(n, channels, dtype=dtype)
+    for start in range(0, n, RANDOM_ROWS):
+        rows = min(RANDOM_ROWS, n - start)
+        out[start:start + rows] = torch.from_numpy(rng.random((rows, channels), dtype=np.float32))
+    return out
