@@ -95,7 +95,9 @@ def rasterize(means, quats, scales, opacities, features, viewmat, K, width: int,
 
         Renders larger than the device's largest buffer are split into sets of rays and groups
         of channels (the same image); features whose 16 channels alone do not fit, or a render
-        that still does not fit, raise :class:`qr_cl.runtime.BufferLimitError` naming the sizes.
+        that still does not fit, raise :class:`qr_cl.runtime.BufferLimitError` naming the sizes; a
+        render whose host memory the system does not have available raises
+        :class:`qr_cl.runtime.HostMemoryError`, also naming them.
 
         Compositing RGB from "quantile" (and "topk"/"stratified"): the selected weights are
         normalized to sum to 1, so the image is the colour *given* a hit; faint edges and
