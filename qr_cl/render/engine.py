@@ -163,6 +163,13 @@ def project_view(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
     return (plans, *ProjectFunction.apply(means, quats, scales, view_t, plans, views))
 
 
+def _group_itemsize(table: torch.Tensor) -> int:
+    """Bytes per element that a channel group of ``table`` must fit in one device buffer: the
+    table's own, or 4 where a gradient is wanted (the feature gradient is summed in float32 rows,
+    also for a float16 table)."""
+    return 4 if _geometry_grads_wanted(table) else table_rows(table).itemsize
+
+
 def _geometry_grads_wanted(*tensors: torch.Tensor | None) -> bool:
     """Whether autograd records and one of the tensors (None: absent) requires a gradient."""
     return torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in tensors)
@@ -218,9 +225,9 @@ def render_view(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, 
             made.append(Splats2D(plan, means2d, conics, opacities))
         return made[0]
 
-    tables = [(features, background, channel_groups(rt, n, channels, table_rows(features).itemsize))]
+    tables = [(features, background, channel_groups(rt, n, channels, _group_itemsize(features)))]
     if extra is not None:
-        tables.append((extra, None, channel_groups(rt, n, extra.shape[1], table_rows(extra).itemsize)))
+        tables.append((extra, None, channel_groups(rt, n, extra.shape[1], _group_itemsize(extra))))
     cstride = max(channel_layout(groups[0].stop - groups[0].start)[2] for _, _, groups in tables)
     parts: list[tuple[Selection, list[torch.Tensor], torch.Tensor]] = []
     for rays in ray_sets(rt, view.width, view.height, view.pixels, view.k, cstride):

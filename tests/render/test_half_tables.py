@@ -106,3 +106,23 @@ def test_a_half_table_needs_half_the_buffer(random_scene, monkeypatch):
     monkeypatch.setattr(type(rt), "max_buffer_bytes", property(lambda self: 2 * n * 512 + 1))
     assert channel_groups(rt, n, 512, itemsize=2) == [slice(0, 512)]
     assert channel_groups(rt, n, 512) == [slice(0, 256), slice(256, 512)]
+
+
+def test_a_half_table_wanting_a_gradient_is_split_for_its_float32_gradient(random_scene, monkeypatch):
+    """A half table that fits one buffer while its float32 gradient does not is rendered in
+    channel groups that the gradient fits: the same image, and the gradient within float16
+    rounding (the limit also splits the rays, and autograd adds the sets' gradients in float16)."""
+    from tests.render.test_buffer_limits import limit_buffers
+    m, q, s, o, v, K, w, h = random_scene
+    _, f16 = tables(len(m), 64)
+    out = []
+    for limited in (False, True):
+        if limited:
+            limit_buffers(monkeypatch, 2 * len(m) * 64 + 64)       # the half table, not float32 dF
+        x = f16.clone().requires_grad_(True)
+        image, _, _ = qr_cl.rasterize(m, q, s, o, x, v, K, w, h, sampler="quantile", k=6)
+        image.square().sum().backward()
+        out.append((image.detach(), x.grad))
+    assert torch.equal(out[0][0], out[1][0])
+    grads = [g.float() for _, g in out]
+    assert float((grads[0] - grads[1]).abs().max()) <= HALF_RTOL * float(grads[0].abs().max())

@@ -51,7 +51,7 @@ def run_scale(out: Path, scales=SCALES, k: int = 40, channels: int = 512, size: 
         with PeakMemory() as peak:
             scene = dense_view(n, *size)
             sweep.plan(scene)
-            sweep.sampler(scene, "quantile", k, stage_channels(rt, n, channels, itemsize), dtype)
+            sweep.sampler(scene, "quantile", k, stage_channels(rt, n, channels), dtype)
             call = sweep.end_to_end(scene, SamplerRenderer("quantile", k), channels, dtype)
         memory.append({"n_gaussians": len(scene.gaussians), "peak_bytes": peak.above_base,
                        "table_bytes": len(scene.gaussians) * channels * itemsize,
@@ -66,11 +66,12 @@ def run_scale(out: Path, scales=SCALES, k: int = 40, channels: int = 512, size: 
     return report
 
 
-def stage_channels(rt, n: int, channels: int, itemsize: int = 4) -> int:
+def stage_channels(rt, n: int, channels: int) -> int:
     """The channels of the blend stages' rows at ``n`` Gaussians: ``channels``, halved until an
-    [n, C] table of ``itemsize``-byte elements fits one device buffer (the public call splits the
-    table into such channel groups itself; the stage rows time one group)."""
-    while channels > 16 and n * channel_layout(channels)[2] * itemsize > rt.max_buffer_bytes:
+    [n, C] float32 table fits one device buffer: the backward's dF rows are float32 whatever the
+    table's dtype (the public call splits a table into such channel groups itself; the stage rows
+    time one group)."""
+    while channels > 16 and n * channel_layout(channels)[2] * 4 > rt.max_buffer_bytes:
         channels //= 2
     return channels
 

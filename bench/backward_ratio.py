@@ -1,0 +1,100 @@
+"""The feature backward against the forward on the dense room, for one install or two back to back.
+
+The 300k-Gaussian dense room (:func:`qr_cl.app.scenes.procedural.dense_room`), 640x480, 512-D
+float32 features, Q-Render K=40 and K=10, at the stage level: forward = the selection kernel
+plus the blend (``select`` then ``blend_forward``), backward = the feature gradient of the whole
+image (``blend_backward``: the deterministic scatter on CPU shapes). The issue's target is
+backward <= 1.5x forward. With ``--base PYTHON`` the same measurement runs first under another
+install (e.g. the previous release in its own venv), in a fresh process per round::
+
+    python bench/backward_ratio.py --base <venv>/bin/python --rounds 3
+
+Prints one table: minimum ms over rounds of each part and the ratio backward / forward.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+
+WIDTH, HEIGHT, CHANNELS, DENSE_N = 640, 480, 512, 300_000
+KS = (40, 10)
+
+
+def child(calls: int) -> None:
+    """Measure in this process (the install it imports) and print a JSON line {K: {part: [s...]}}."""
+    import numpy as np
+    import pyopencl.array as cla
+
+    from qr_cl.app.process import cap_kernel_threads
+    cap_kernel_threads()
+    from qr_cl.app.scenes.procedural import dense_room
+    from qr_cl.render import rasterize_plan
+    from qr_cl.render.selfcheck import checked_runtime
+    from qr_cl.runtime import channel_layout, padded_rows, to_device
+    from qr_cl.stages import blend_backward, blend_forward, select
+
+    rt = checked_runtime()
+    g, cam = dense_room(DENSE_N, width=WIDTH, height=HEIGHT)
+    plan = rasterize_plan(g.means, g.quats, g.scales, g.opacities, cam.viewmat, cam.K, WIDTH, HEIGHT)
+    cstride = channel_layout(CHANNELS)[2]
+    rng = np.random.default_rng(0)
+    feats = to_device(rt, padded_rows(rng.random((len(g.means), CHANNELS), dtype=np.float32), cstride))
+    dimage = to_device(rt, padded_rows(rng.random((WIDTH * HEIGHT, CHANNELS), dtype=np.float32), cstride))
+    image = cla.empty(rt.queue, (WIDTH * HEIGHT, cstride), np.float32)
+
+    def timed(fn) -> float:
+        start = time.perf_counter()
+        fn()
+        rt.queue.finish()
+        return time.perf_counter() - start
+    out = {}
+    for k in KS:
+        parts = {"select": [], "blend": [], "backward": []}
+        for call in range(calls + 1):                       # the first call warms up
+            holder = {}
+            t_sel = timed(lambda: holder.setdefault("sel", select(plan, "quantile", k)))
+            sel = holder["sel"]
+            t_blend = timed(lambda: blend_forward(sel, feats, CHANNELS, out=image))
+            t_back = timed(lambda: blend_backward(sel, dimage, CHANNELS))
+            if call:
+                for name, t in zip(parts, (t_sel, t_blend, t_back)):
+                    parts[name].append(t)
+        out[k] = parts
+    print(json.dumps(out))
+
+
+def run(python: str, calls: int) -> dict:
+    proc = subprocess.run([python, __file__, "--child", str(calls)], capture_output=True, text=True, check=True)
+    return {int(k): v for k, v in json.loads(proc.stdout.strip().splitlines()[-1]).items()}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--base", help="python of another install, measured first in each round")
+    parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--calls", type=int, default=3, help="timed calls per round and K")
+    parser.add_argument("--child", type=int, help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.child is not None:
+        child(args.child)
+        return
+    builds = {"base": args.base, "this": sys.executable} if args.base else {"this": sys.executable}
+    best: dict = {}
+    for _ in range(args.rounds):
+        for name, python in builds.items():
+            for k, parts in run(python, args.calls).items():
+                for part, times in parts.items():
+                    best[name, k, part] = min(best.get((name, k, part), float("inf")), min(times))
+    print(f"| build | K | select ms | blend ms | forward ms | backward ms | backward / forward |")
+    print("| --- | ---: | ---: | ---: | ---: | ---: | ---: |")
+    for name in builds:
+        for k in KS:
+            sel, blend, back = (1e3 * best[name, k, p] for p in ("select", "blend", "backward"))
+            print(f"| {name} | {k} | {sel:.1f} | {blend:.1f} | {sel + blend:.1f} | {back:.1f} | {back / (sel + blend):.2f} |")
+
+
+if __name__ == "__main__":
+    main()
