@@ -93,7 +93,8 @@ def scale_markdown(report: dict) -> str:
              "Minimum wall ms over the rounds after a warm-up; x: against the smallest N. Peak memory: resident "
              "memory above the level before the scene was made (scene, plan, selection, feature table, image, "
              "and the bench's own device copy of the table for the stage rows); one call over its table: the "
-             "peak of one public call above the level before it, the table resident. "
+             "peak of a first public call above the level before it, the table resident and the memory pools "
+             "emptied. "
              "The blend rows time the largest table that fits one device buffer: C = " +
              ", ".join(f"{blend_c[n]} at N={n:,}" for n in ns) + "; end-to-end is the public call with all "
              f"{report['channels']} channels (split into such groups where needed).", "",
@@ -112,8 +113,9 @@ def scale_markdown(report: dict) -> str:
     lines.append("| feature table, GB | " + " | ".join(f"{m['table_bytes'] / 1e9:.2f}" for m in mem) + " | " +
                  " | ".join(f"{m['table_bytes'] / mem[0]['table_bytes']:.2f}" for m in mem[1:]) + " |")
     if all("call_peak_bytes" in m for m in mem):
+        first = mem[0]["call_peak_bytes"]
         lines.append("| one call over its table, GB | " + " | ".join(f"{m['call_peak_bytes'] / 1e9:.2f}" for m in mem)
-                     + " | " + " | ".join(f"{m['call_peak_bytes'] / max(mem[0]['call_peak_bytes'], 1):.2f}"
+                     + " | " + " | ".join(f"{m['call_peak_bytes'] / first:.2f}" if first > 0 else "-"
                                           for m in mem[1:]) + " |")
     return "\n".join(lines) + "\n"
 

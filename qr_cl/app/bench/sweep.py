@@ -15,7 +15,7 @@ import torch
 
 from ...render import rasterization, rasterize
 from ...render.selfcheck import checked_runtime
-from ...runtime import channel_layout, padded_rows, to_device
+from ...runtime import channel_layout, host_pool, padded_rows, to_device, trim_device_pool
 from ...stages import RasterPlan, bin_and_sort, blend_backward, blend_forward, project, render_fused, select
 from ..renderers import FUSED_NAME, FeatureRenderer
 from ..scenes.views import SceneView
@@ -161,18 +161,20 @@ class Sweep:
         """Time the public call (projection to image) of one renderer (``rasterize`` through a
         sampler, or ``render_volume_fused``) of a ``dtype`` table, count the minor page faults of a
         warm call (``faults_per_call``, 0 when nothing is freshly allocated) and measure the peak
-        resident memory of one warm call above the level before it, the table resident
-        (``call_peak_bytes``)."""
+        resident memory of a first call above the level before it, the table resident and the
+        memory pools emptied (``call_peak_bytes``: what a render costs beyond its table)."""
         g, cam = scene.gaussians, scene.camera
         feats = random_features(len(g), channels, dtype)
         args = (g.means, g.quats, g.scales, g.opacities, feats, cam.viewmat, cam.K, cam.width, cam.height)
 
         def call():
             return renderer(*args)
-        timing = measure(call, self.rounds)
-        k = renderer.k if renderer.name in ("quantile", "topk") else 0
+        trim_device_pool(self.rt, 0)
+        host_pool().clear()
         with PeakMemory() as peak:
             call()
+        timing = measure(call, self.rounds)
+        k = renderer.k if renderer.name in ("quantile", "topk") else 0
         return self._row(scene, "end-to-end", renderer.name, k, channels, timing,
                          faults_per_call=warm_page_faults(call), call_peak_bytes=peak.above_base,
                          table_dtype=str(dtype).removeprefix("torch."))
