@@ -11,7 +11,7 @@ from tqdm import tqdm
 
 from ..render import render_volume_fused
 from ..render.selfcheck import check_in_child
-from ..runtime import BufferLimitError, NoDeviceError, choose_device, list_devices, trial_run
+from ..runtime import BufferLimitError, HostMemoryError, NoDeviceError, choose_device, list_devices, trial_run
 from ..runtime.device import implementation, self_check_enabled
 from ..scene import SceneFormatError, load_cameras, load_layout_instance, load_scene, orbit_cameras
 from .images import save_alpha, save_depth, save_rgb
@@ -117,7 +117,7 @@ def main(argv: list[str] | None = None) -> int:
         warnings.formatwarning = lambda msg, cat, *a, **k: f"warning: {msg}\n"
         try:
             return commands[args.command](args)
-        except (SceneFormatError, NoDeviceError, CheckpointError, BufferLimitError) as exc:
+        except (SceneFormatError, NoDeviceError, CheckpointError, BufferLimitError, HostMemoryError) as exc:
             print(f"qr-cl: error: {exc}", file=sys.stderr)
             return 2
         except (FileNotFoundError, IsADirectoryError, NotADirectoryError, PermissionError) as exc:

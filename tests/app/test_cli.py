@@ -27,6 +27,19 @@ def test_render_bad_file_is_a_one_line_error(tmp_path, capsys):
     assert err.startswith("qr-cl: error:") and "bad.ply" in err and "Traceback" not in err
 
 
+def test_a_render_the_memory_cannot_hold_is_a_one_line_error(tmp_path, capsys, monkeypatch):
+    from qr_cl.runtime import host_pool, memory
+    save_ply(tmp_path / "scene.ply", procedural_scene(1000))
+    monkeypatch.setattr(memory, "HOST_CHECK_BYTES", 1 << 10)
+    monkeypatch.setattr(memory, "available_host_bytes", lambda: 2048)
+    host_pool().clear()
+    assert main(["render", str(tmp_path / "scene.ply"), "--orbit", "1", "--width", "64", "--height", "48",
+                 "--out", str(tmp_path / "r")]) == 2
+    last = capsys.readouterr().err.strip().splitlines()[-1]          # after the progress bar
+    assert last.startswith("qr-cl: error: a ") and "GB of host memory" in last and "0.00 GB available" in last
+    assert "Traceback" not in capsys.readouterr().err
+
+
 def test_devices_marks_the_chosen_one(capsys):
     assert main(["devices"]) == 0
     lines = capsys.readouterr().out.splitlines()

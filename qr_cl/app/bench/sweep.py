@@ -15,7 +15,7 @@ import torch
 
 from ...render import rasterization, rasterize
 from ...render.selfcheck import checked_runtime
-from ...runtime import channel_layout, host_pool, padded_rows, to_device, trim_device_pool
+from ...runtime import channel_layout, host_pool, padded_rows, shared_array, to_device, trim_device_pool
 from ...stages import RasterPlan, bin_and_sort, blend_backward, blend_forward, project, render_fused, select
 from ..renderers import FUSED_NAME, FeatureRenderer
 from ..scenes.views import SceneView
@@ -130,8 +130,12 @@ class Sweep:
         table = random_features(len(scene.gaussians), channels, dtype).numpy()
         if channels < cstride:
             table = np.pad(table, ((0, 0), (0, cstride - channels)))
-        feats = to_device(self.rt, table, table.dtype)
-        del table
+        with shared_array(self.rt, table, "r") as feats:      # the table's own memory on CPU devices
+            return selection, self._blend_rows(scene, sel, kk, channels, feats)
+
+    def _blend_rows(self, scene: SceneView, sel, k: int, channels: int, feats: cla.Array) -> dict:
+        """Time blend forward and backward of ``sel`` with the device rows ``feats``; the forward row."""
+        plan, cstride = sel.plan, feats.shape[1]
         image = cla.empty(self.rt.queue, (sel.n_rays, cstride), np.float32)
 
         def forward():
@@ -142,19 +146,18 @@ class Sweep:
         mean_k = float(hit.mean()) if hit.size else 0.0
         timing = measure(forward, self.rounds)
         device_bytes = plan.splats.nbytes + plan.ids.nbytes + sel.nbytes + feats.nbytes + image.nbytes
-        fwd = self._row(scene, "blend-forward", sampler, kk, channels, timing, mean_entries=mean_k,
-                        table_dtype=str(dtype).removeprefix("torch."),
-                        device_bytes=device_bytes, **self._roofline_fields(hit.size, mean_k, channels,
-                                                                           timing["min_s"], sel.n_rays))
+        fwd = self._row(scene, "blend-forward", sel.sampler, k, channels, timing, mean_entries=mean_k,
+                        table_dtype=str(feats.dtype), device_bytes=device_bytes,
+                        **self._roofline_fields(hit.size, mean_k, channels, timing["min_s"], sel.n_rays))
 
         def backward():
             blend_backward(sel, image, channels)
             self._finish()
         timing = measure(backward, self.rounds)
-        self._row(scene, "blend-backward", sampler, kk, channels, timing, mean_entries=mean_k,
-                  device_bytes=device_bytes + feats.nbytes,
+        self._row(scene, "blend-backward", sel.sampler, k, channels, timing, mean_entries=mean_k,
+                  device_bytes=device_bytes + 4 * sel.n_gaussians * cstride,      # dF: float32 rows
                   **self._roofline_fields(hit.size, mean_k, channels, timing["min_s"], sel.n_rays))
-        return selection, fwd
+        return fwd
 
     def end_to_end(self, scene: SceneView, renderer: FeatureRenderer, channels: int,
                    dtype: torch.dtype = torch.float32) -> dict:
