@@ -59,7 +59,7 @@ def run_scale(out: Path, scales=SCALES, k: int = 40, channels: int = 512, size: 
         del scene
     rows = [r for r in sweep.rows if r["stage"] in STAGES]
     report = {"k": k, "channels": channels, "size": list(size), "rows": rows, "memory": memory,
-              "table_dtype": table_dtype}
+              "table_dtype": table_dtype, "max_buffer_bytes": rt.max_buffer_bytes}
     (out / "scale.json").write_text(json.dumps(report, indent=1))
     (out / "scale.md").write_text(scale_markdown(report))
     plot_scale(report, out / "scale.png")
@@ -92,9 +92,11 @@ def scale_markdown(report: dict) -> str:
              f"C={report['channels']} {dtype})", "",
              "Minimum wall ms over the rounds after a warm-up; x: against the smallest N. Peak memory: resident "
              "memory above the level before the scene was made (scene, plan, selection, feature table, image, "
-             "and the bench's own device copy of the table for the stage rows); one call over its table: the "
+             "and the stage rows' own table and dF); one call over its table: the "
              "peak of a first public call above the level before it, the table resident and the memory pools "
              "emptied. "
+             (f"The device's largest buffer: {report['max_buffer_bytes'] / 2**30:.1f} GiB (PoCL sizes it from the "
+              "memory free when it starts). " if "max_buffer_bytes" in report else "") +
              "The blend rows time the largest table that fits one device buffer: C = " +
              ", ".join(f"{blend_c[n]} at N={n:,}" for n in ns) + "; end-to-end is the public call with all "
              f"{report['channels']} channels (split into such groups where needed).", "",
