@@ -94,7 +94,7 @@ def scale_markdown(report: dict) -> str:
              "memory above the level before the scene was made (scene, plan, selection, feature table, image, "
              "and the stage rows' own table and dF); one call over its table: the "
              "peak of a first public call above the level before it, the table resident and the memory pools "
-             "emptied. "
+             "emptied. " +
              (f"The device's largest buffer: {report['max_buffer_bytes'] / 2**30:.1f} GiB (PoCL sizes it from the "
               "memory free when it starts). " if "max_buffer_bytes" in report else "") +
              "The blend rows time the largest table that fits one device buffer: C = " +
