@@ -85,6 +85,13 @@ __kernel void blend_backward_scatter(const int n_owners, __global const int *bou
 }
 #endif
 
+/* dst[i] = src[i] rounded to half, to nearest even (as a float -> half cast): the float32 sums of
+   a float16 table's gradient in the table's dtype. One work-item per element. */
+__kernel void rows_to_half(const long n, __global const float *src, __global half *dst) {
+    const long i = get_global_id(0);
+    if (i < n) vstore_half_rte(src[i], 0, dst + i);
+}
+
 /* ---- gradients w.r.t. the geometry: dL/dalpha per entry, then per Gaussian splat ---- */
 
 /* Backward of the blend w.r.t. the alphas a_j of ray p's entries (depth order; recomputed from

@@ -19,7 +19,7 @@ import torch
 
 from ..runtime import channel_layout, check_channels, device_rows, host_empty, shared_array, to_device
 from ..stages.binning import RasterPlan
-from ..stages.blend import blend_backward, blend_backward_alpha, blend_forward, splat_backward
+from ..stages.blend import blend_backward, blend_backward_alpha, blend_forward, rows_to_half, splat_backward
 from ..stages.project import project_backward
 from ..stages.select import Selection
 from ..stages.sh import sh_backward, sh_colors
@@ -45,10 +45,10 @@ def image_dtype(features: torch.Tensor) -> torch.dtype:
     return torch.promote_types(features.dtype, torch.float32)
 
 
-def _output(rows: int, channels: int, cstride: int):
-    """A pooled host array [rows, cstride] the kernels write into, and the [rows, channels]
-    tensor over it that the caller receives (a strided view when channels < cstride)."""
-    host = host_empty((rows, cstride))
+def _output(rows: int, channels: int, cstride: int, dtype=np.float32):
+    """A pooled host array [rows, cstride] of ``dtype`` the kernels write into, and the [rows,
+    channels] tensor over it that the caller receives (a strided view when channels < cstride)."""
+    host = host_empty((rows, cstride), dtype)
     return host, torch.from_numpy(host if cstride == channels else host[:, :channels])
 
 
@@ -92,12 +92,17 @@ def _blend_image(sel: Selection, features: torch.Tensor, background: torch.Tenso
 
 
 def _feature_grad(sel: Selection, grad_image: torch.Tensor, channels: int, dtype: torch.dtype) -> torch.Tensor:
-    """dL/dfeatures [N,C] in ``dtype`` (the features') by the deterministic blend_backward, in float32."""
+    """dL/dfeatures [N,C] in ``dtype`` (the features') by the deterministic blend_backward, summed
+    in float32; for a float16 table rounded on the device (rows_to_half) into the returned array."""
     rt = sel.plan.runtime
     cstride = channel_layout(channels)[2]
-    host, d = _output(sel.n_gaussians, channels, cstride)
+    half = dtype == torch.float16
+    host, d = _output(sel.n_gaussians, channels, cstride, np.float16 if half else np.float32)
     with device_rows(rt, host_rows(grad_image), cstride) as dimage, shared_array(rt, host, "w") as out:
-        blend_backward(sel, dimage, channels, out=out)
+        if half:
+            rows_to_half(rt, blend_backward(sel, dimage, channels), out)
+        else:
+            blend_backward(sel, dimage, channels, out=out)
     return d.to(dtype)
 
 

@@ -118,6 +118,18 @@ def blend_backward(sel: Selection, dimage: cla.Array, channels: int, out: cla.Ar
     return dfeatures
 
 
+def rows_to_half(rt: Runtime, rows: cla.Array, out: cla.Array) -> cla.Array:
+    """``out`` (float16, the shape of ``rows``) = the float32 device array ``rows`` rounded to half,
+    to nearest even (numpy's and torch's cast), by all the device's cores: a float16 table's
+    gradient, summed in float32 by :func:`blend_backward`, in the table's dtype."""
+    if rows.dtype != np.float32 or out.dtype != np.float16 or out.shape != rows.shape:
+        raise ValueError(f"rows_to_half needs float32 rows and a float16 out of one shape, got {rows.dtype} "
+                         f"{rows.shape} and {out.dtype} {out.shape}")
+    if rows.size:
+        rt.launch("rows_to_half", rows.size, defines={"VW": 1, "NV": 1}, n=rows.size, src=rows, dst=out)
+    return out
+
+
 def owner_bounds(sel: Selection, owners: int) -> np.ndarray:
     """Cuts [owners + 1] int32 of the Gaussians 0..N into ranges holding about equal numbers of
     ``sel``'s entries (the backward scatter's work-items; from a device histogram of the entries

@@ -207,3 +207,18 @@ def test_shape_errors(plan):
         blend_forward(sel, device_rows(plan, np.zeros((3, 16), np.float32)), 16)
     with pytest.raises(ValueError, match="dimage"):
         blend_backward(sel, device_rows(plan, np.zeros((5, 16), np.float32)), 16)
+
+
+def test_rows_to_half_rounds_as_numpy(plan):
+    """The gradient of a float16 table is rounded on the device: to nearest even, as numpy's cast,
+    overflow to infinity and subnormals included."""
+    rt = plan.runtime
+    rng = np.random.default_rng(9)
+    values = np.concatenate([rng.standard_normal(4000) * 10.0 ** rng.integers(-9, 6, 4000),
+                             [0.0, -0.0, 65504.0, 65520.0, 1e6, -1e6, 6e-8, 3e-8, 2.98e-8, 1 + 2 ** -11,
+                              1 + 3 * 2 ** -11, np.inf, -np.inf]]).astype(np.float32).reshape(-1, 1)
+    out = memory.device_empty(rt, values.shape, np.float16)
+    got = blend_stage.rows_to_half(rt, memory.to_device(rt, values), out).get()
+    assert got.tobytes() == values.astype(np.float16).tobytes()
+    with pytest.raises(ValueError, match="float16 out"):
+        blend_stage.rows_to_half(rt, memory.to_device(rt, values), memory.device_empty(rt, values.shape))
