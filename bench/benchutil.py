@@ -22,3 +22,22 @@ def _checkout_timing():
 
 
 timing = _checkout_timing()
+
+
+def fox_and_dense_room(data: Path | None, width: int, height: int, dense_n: int) -> dict:
+    """{name: (Gaussians, Camera)} of this checkout's qr_cl: the real fox (where ``data`` holds
+    it; its second orbit camera) and the procedural dense room of ``dense_n`` Gaussians, both
+    width x height."""
+    import warnings
+
+    import qr_cl
+    from qr_cl.app.scenes.procedural import dense_room
+    scenes = {}
+    fox = None if data is None else data / "wakufactory-fox" / "fox.ply"
+    if fox is not None and fox.is_file():
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            g = qr_cl.load_ply(fox)
+        scenes["fox"] = (g, qr_cl.orbit_cameras(g.means, 8, width, height)[1])
+    scenes[f"dense-room-{dense_n // 1000}k"] = dense_room(dense_n, width=width, height=height)
+    return scenes

@@ -20,30 +20,16 @@ from __future__ import annotations
 import argparse
 import json
 import time
-import warnings
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from benchutil import fox_and_dense_room
+
 WIDTH, HEIGHT, CHANNELS, DENSE_N = 640, 480, 512, 300_000
 PATHS = ("blend", "render", "backward")
 DTYPES = {"float32": torch.float32, "float16": torch.float16}
-
-
-def scenes(data: Path | None) -> dict:
-    """{name: (Gaussians, Camera)}: the dense room and, where ``data`` has it, the fox."""
-    import qr_cl
-    from qr_cl.app.scenes.procedural import dense_room
-    out = {}
-    fox = None if data is None else data / "wakufactory-fox" / "fox.ply"
-    if fox is not None and fox.is_file():
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            g = qr_cl.load_ply(fox)
-        out["fox"] = (g, qr_cl.orbit_cameras(g.means, 8, WIDTH, HEIGHT)[1])
-    out["dense-room-300k"] = dense_room(DENSE_N, width=WIDTH, height=HEIGHT)
-    return out
 
 
 def measure(g, cam, k: int, rounds: int) -> dict:
@@ -115,7 +101,7 @@ def main() -> None:
     from qr_cl.app.process import cap_kernel_threads
     cap_kernel_threads()
     rows = []
-    for name, (g, cam) in scenes(args.data).items():
+    for name, (g, cam) in fox_and_dense_room(args.data, WIDTH, HEIGHT, DENSE_N).items():
         for k in (40, 10):
             rows.append({"scene": name, **measure(g, cam, k, args.rounds)})
             print(name, k, {key: round(v, 1) for key, v in rows[-1]["ms"].items()}, flush=True)

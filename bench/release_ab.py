@@ -28,12 +28,11 @@ import json
 import subprocess
 import sys
 import tempfile
-import warnings
 from pathlib import Path
 
 import numpy as np
 
-from benchutil import timing
+from benchutil import fox_and_dense_room, timing
 
 WIDTH, HEIGHT, CHANNELS, DENSE_N = 640, 480, 512, 300_000
 VIEWS, RAYS = 4, 2048
@@ -42,16 +41,7 @@ PATHS = ("walk", "fused", "q40", "q10", "train")
 
 def make_scenes(data: Path | None, out: Path) -> list[str]:
     """Write the scenes' Gaussians and cameras to ``out`` (npz, keys ``<scene>/<array>``); their names."""
-    import qr_cl
-    from qr_cl.app.scenes.procedural import dense_room
-    scenes = {}
-    fox = None if data is None else data / "wakufactory-fox" / "fox.ply"
-    if fox is not None and fox.is_file():
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            g = qr_cl.load_ply(fox)
-        scenes["fox"] = (g, qr_cl.orbit_cameras(g.means, 8, WIDTH, HEIGHT)[1])
-    scenes["dense-room-300k"] = dense_room(DENSE_N, width=WIDTH, height=HEIGHT)
+    scenes = fox_and_dense_room(data, WIDTH, HEIGHT, DENSE_N)
     arrays = {}
     for name, (g, cam) in scenes.items():
         for key in ("means", "quats", "scales", "opacities"):
