@@ -66,8 +66,8 @@ def blend_forward(sel: Selection, features: cla.Array, channels: int,
               use_bg=background is not None, stream=streamed(image.nbytes))
     if sel.pending is not None:
         launch, sel.pending = sel.pending, None
-        launch(defines={"VW": vw, "NV": nv, "BLEND_ROWS": 1, **row_defines(features)}, features=features, n_rows=sel.n_gaussians,
-               cstride=cstride, image=image, **bg)
+        launch(defines={"VW": vw, "NV": nv, "BLEND_ROWS": 1, **row_defines(features)}, features=features,
+               n_rows=sel.n_gaussians, cstride=cstride, image=image, **bg)
         return image
     size, full = sel.launch()
     plan = sel.plan
