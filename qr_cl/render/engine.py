@@ -167,10 +167,10 @@ def _group_itemsize(table: torch.Tensor) -> int:
     """Bytes per element that a channel group of ``table`` must fit in one device buffer: the
     table's own, or 4 where a gradient is wanted (the feature gradient is summed in float32 rows,
     also for a float16 table)."""
-    return 4 if _geometry_grads_wanted(table) else table_rows(table).itemsize
+    return 4 if _grad_wanted(table) else table_rows(table).itemsize
 
 
-def _geometry_grads_wanted(*tensors: torch.Tensor | None) -> bool:
+def _grad_wanted(*tensors: torch.Tensor | None) -> bool:
     """Whether autograd records and one of the tensors (None: absent) requires a gradient."""
     return torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in tensors)
 
@@ -218,7 +218,7 @@ def render_view(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, 
     def splats_of(plan: RasterPlan) -> Splats2D:
         if not made:
             means2d = conics = None
-            if _geometry_grads_wanted(means, quats, scales, viewmat):
+            if _grad_wanted(means, quats, scales, viewmat):
                 _, means2d, conics, _ = project_view(means, quats, scales, opacities, [view],
                                                      None if viewmat is None else viewmat[None], [plan])
                 means2d, conics = means2d[0], conics[0]
