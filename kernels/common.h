@@ -271,8 +271,10 @@ static inline void tile_spans(const span_t *e, int4 rect, int ty0, int tiles_x, 
     span_chords(e, bottom, &left_b, &right_b);
     left = select(fmin(left, left_b), (lanef)(-e->e_x), (top <= e->dy_x) & (e->dy_x <= bottom));
     right = select(fmax(right, right_b), (lanef)(e->e_x), (top <= -e->dy_x) & (-e->dy_x <= bottom));
-    const lanei a = max(tile_indices(e->mx + left - e->margin, tiles_x), rect.x);
-    const lanei b = min(tile_indices(e->mx + right + e->margin, tiles_x) + 1, rect.z);
+    /* Bounds broadcast to lanei, not max(lanei, int): oclgrind (21.10, and its source up to 26.03)
+       reads lanes 1.. of the scalar argument of integer max/min/clamp past its end. */
+    const lanei a = max(tile_indices(e->mx + left - e->margin, tiles_x), (lanei)(rect.x));
+    const lanei b = min(tile_indices(e->mx + right + e->margin, tiles_x) + 1, (lanei)(rect.z));
     const lanei keep = in_rect & (left <= right) & (a < b);
     *x0 = select((lanei)(rect.x), a, keep);
     *x1 = select((lanei)(rect.x), b, keep);

@@ -25,7 +25,12 @@ sort's) and about pyopencl's probing of vendor-specific device queries (clGetDev
 CL_INVALID_VALUE) are printed, not failed on. Skipped when oclgrind's ICD library is not installed
 (Debian/Ubuntu: ``apt-get install oclgrind``).
 
-Run as a script (``python tests/drivers/test_oclgrind.py races|uninitialized``) this file is the child.
+A third test checks values rather than reports: project.cl run three times under oclgrind (no
+checks, seconds) must give the float64 twin's projection each time
+(:func:`test_projection_under_oclgrind_is_the_twins`).
+
+Run as a script (``python tests/drivers/test_oclgrind.py races|uninitialized``, or ``project
+OUT.npz``) this file is the child.
 """
 from __future__ import annotations
 
@@ -207,6 +212,30 @@ def exercise_pyopencl() -> None:
     print("pyopencl exclusive scan, max scan, radix sort on the device: ok", flush=True)
 
 
+PROJECT_RUNS = 3
+
+
+def project_runs(path: str) -> None:
+    """project.cl on the self-check scene (160 Gaussians, 40x24 px: tile rectangles of two tile
+    rows, so tile_spans' lanes past the first count), :data:`PROJECT_RUNS` times on the same
+    device arrays; the outputs of every run saved to ``path`` (npz) for the parent to check."""
+    import numpy as np
+
+    from qr_cl.render import selfcheck
+    from qr_cl.runtime import runtime, to_device
+    from qr_cl.stages.project import project
+
+    rt = runtime()
+    print("device:", rt.device.name.strip(), "/", rt.device.platform.name.strip(), flush=True)
+    geometry, _, _, cam = selfcheck._scene()
+    arrays = [to_device(rt, a) for a in geometry]
+    runs = {}
+    for run in range(PROJECT_RUNS):
+        out = project(rt, *arrays, cam.viewmat, cam.K, selfcheck.WIDTH, selfcheck.HEIGHT, 0.01, 1e10)
+        runs.update({f"{name}{run}": a.get() for name, a in zip(out._fields, out)})
+    np.savez(path, **runs)
+
+
 HOST_SCAN_OPS = {"a+b": "add", "max(a,b)": "maximum", "min(a,b)": "minimum"}
 
 
@@ -358,12 +387,12 @@ def summary(reports: list[str]) -> str:
     return "\n".join(f"{n:5d} x {k}" for k, n in Counter(map(kind, reports)).most_common())
 
 
-def run_child(mode: str, tmp_path: Path, timeout: float = 600):
+def run_child(mode: str, tmp_path: Path, timeout: float = 600, args: tuple[str, ...] = ()):
     vendors = tmp_path / "vendors"
     vendors.mkdir()
     (vendors / "oclgrind.icd").write_text(oclgrind_icd() + "\n")
     env = {k: v for k, v in os.environ.items() if not k.startswith(("OCLGRIND_", "PYOPENCL_CTX"))}
-    env.update(MODES[mode], OCL_ICD_VENDORS=str(vendors), QR_CL_DEVICE="oclgrind:0",
+    env.update(MODES.get(mode, {}), OCL_ICD_VENDORS=str(vendors), QR_CL_DEVICE="oclgrind:0",
                OCLGRIND_MAX_ERRORS="1000000",
                PYOPENCL_NO_CACHE="1",     # binaries cached by another run ignore BUILD_OPTIONS
                OMP_NUM_THREADS="1",
@@ -372,7 +401,7 @@ def run_child(mode: str, tmp_path: Path, timeout: float = 600):
                QR_CL_SELF_CHECK="off",
                PYTHONPATH=os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")])))
     start = time.perf_counter()
-    proc = subprocess.run([sys.executable, str(Path(__file__).resolve()), mode], cwd=tmp_path, env=env,
+    proc = subprocess.run([sys.executable, str(Path(__file__).resolve()), mode, *args], cwd=tmp_path, env=env,
                           capture_output=True, text=True, timeout=timeout)
     return proc, time.perf_counter() - start
 
@@ -405,7 +434,55 @@ def test_qr_cl_kernels_are_clean_under_oclgrind(mode, tmp_path):
                       + "\n\n".join(mine[:5]))
 
 
+def test_projection_under_oclgrind_is_the_twins(tmp_path):
+    """The values of project.cl under oclgrind (the test above reads only its reports): every run
+    of :func:`project_runs` equal to the first, and the tile rectangles, radii, tiles touched and
+    stored row spans equal to the float64 twin's, splats close to it. Caught integer max/min with
+    a scalar bound on a lanei in tile_spans (common.h): oclgrind reads that bound's lanes 1.. out
+    of its own memory, so the tiles touched changed from run to run and some Gaussians were culled."""
+    import numpy as np
+
+    from qr_cl.render import selfcheck
+    from qr_cl.stages import project_ref
+    from qr_cl.stages.project import tile_grid
+
+    if oclgrind_icd() is None:
+        pytest.skip("oclgrind is not installed (apt-get install oclgrind)")
+    out = tmp_path / "project.npz"
+    proc, seconds = run_child("project", tmp_path, timeout=300, args=(str(out),))
+    assert proc.returncode == 0, f"child failed (rc {proc.returncode}):\n{proc.stdout}\n{proc.stderr[-8000:]}"
+    assert "device: Oclgrind" in proc.stdout, proc.stdout
+    got = np.load(out)
+    for run in range(1, PROJECT_RUNS):
+        for name in ("splats", "radii", "footprints", "tiles_touched", "depth_keys"):
+            assert np.array_equal(got[f"{name}{run}"], got[f"{name}0"]), f"run {run}: {name} differ from run 0"
+
+    geometry, _, _, cam = selfcheck._scene()
+    w, h = selfcheck.WIDTH, selfcheck.HEIGHT
+    twin = project_ref.project(*geometry, cam.viewmat, cam.K, w, h)
+    splats, footprints = got["splats0"], got["footprints0"]
+    np.testing.assert_array_equal(got["radii0"], twin["radii"])
+    np.testing.assert_array_equal(footprints[:, :4], twin["rects"])
+    np.testing.assert_array_equal(got["tiles_touched0"], twin["tiles_touched"])
+    vis = twin["radii"][:, 0] > 0
+    assert vis.sum() > 100, "the scene should keep most Gaussians"
+    np.testing.assert_allclose(splats[vis, :2], twin["means2d"][vis], rtol=1e-4, atol=1e-3)
+    np.testing.assert_allclose(splats[vis, 2:5], twin["conics"][vis], rtol=1e-4, atol=1e-4)
+    spans = footprints[:, 4:].copy().view(np.uint16).astype(np.int64)   # (x0 - rect x0) | (x1 - rect x0) << 8
+    tiles_x, _ = tile_grid(w, h)
+    for i in np.flatnonzero(vis):
+        rect = twin["rects"][i]
+        want = project_ref.tile_spans(twin["means2d"][i], twin["conics"][i], twin["opacities"][i], rect, tiles_x)
+        rows = spans[i, :rect[3] - rect[1]]
+        n_got = (rows >> 8) - (rows & 0xff)
+        assert np.array_equal(n_got, np.maximum(want[:, 2] - want[:, 1], 0)), f"Gaussian {i}: row spans"
+    print(f"child ran {seconds:.1f} s; {int(vis.sum())} Gaussians, {int(twin['tiles_touched'].sum())} tiles")
+
+
 if __name__ == "__main__":
+    if sys.argv[1] == "project":
+        project_runs(sys.argv[2])
+        sys.exit()
     record_scan_and_sort_specs()
     if sys.argv[1:] == ["races"]:
         exercise_pyopencl()
