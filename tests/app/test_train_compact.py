@@ -49,16 +49,30 @@ def test_devoxelize_rows_are_rows_of_the_full_result(shape, reduce):
 
 
 @pytest.mark.parametrize("shape,reduce", [("center", "max"), ("volume", "max"), ("volume", "mean")])
-def test_gsnet_rows_are_rows_of_the_full_forward(shape, reduce):
+def test_head_of_blended_head_inputs_is_the_blend_of_the_features(shape, reduce):
+    """apply_head of weighted sums of head_inputs rows equals the same weighted sums of the rows
+    of forward (values, and gradients w.r.t. every parameter): rendering D + 1 channels and
+    applying the head to the rays gives the rays of the unit features."""
     torch.manual_seed(0)
     net = GSNet(16, VoxelConfig(grid_size=0.05, sample_shape=shape), minkunet14(7, **SMALL), reduce=reduce).eval()
     batch = net.prepare(random_gaussians(150, 4))
-    rows = torch.tensor([5, 149, 0, 77])
-    with torch.no_grad():
-        torch.testing.assert_close(net(batch, rows), net(batch)[rows], rtol=1e-5, atol=1e-6)
-    net.train()
-    net(batch, rows).sum().backward()
-    assert net.head.weight.grad.abs().sum() > 0
+    rows = torch.tensor([5, 149, 0, 77, 77])
+    weights = torch.rand(6, len(rows), generator=torch.Generator().manual_seed(1))
+    weights[0] = torch.tensor([1.0, 0, 0, 0, 0])            # a ray of one Gaussian: its own feature
+    probe = torch.randn(6, 16, generator=torch.Generator().manual_seed(2))
+    grads = []
+    for rays in (lambda: weights @ net(batch)[rows], lambda: net.apply_head(weights @ net.head_inputs(batch, rows))):
+        net.zero_grad()
+        value = rays()
+        (value * probe).sum().backward()
+        grads.append((value.detach(), [p.grad.clone() for p in net.parameters() if p.grad is not None]))
+    (want, want_grads), (got, got_grads) = grads
+    assert net.head_inputs(batch, rows).shape == (len(rows), SMALL["dec_channels"][-1] + 1)
+    torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(got[0], net(batch)[rows[0]].detach(), rtol=1e-5, atol=1e-6)
+    assert len(got_grads) == len(want_grads) > 2 and want_grads[-2].abs().sum() > 0
+    for g, w in zip(got_grads, want_grads):
+        torch.testing.assert_close(g, w, rtol=1e-4, atol=1e-5)
 
 
 def _cfg(scene, out, **kw) -> TrainConfig:

@@ -5,8 +5,6 @@ import torch
 import torch.nn.functional as F
 
 from qr_cl.backbone import GSNet, SparseTensor, SparseUNet, VoxelConfig, devoxelize, minkunet14, minkunet18
-from qr_cl.backbone.conv import conv_threads
-from qr_cl.backbone.gsnet import _row_blocks, unit_linear
 from qr_cl.scene import Gaussians
 
 SMALL = dict(stem_channels=8, stem_kernel=3, enc_channels=(8, 16, 16), enc_blocks=(1, 1, 1), dec_channels=(16, 8, 8), dec_blocks=(1, 1, 1))
@@ -186,25 +184,3 @@ def test_gsnet_overfits_three_labelled_clusters():
         accuracy = ((net(batch) @ targets.T).argmax(1) == labels).float().mean().item()
     print(f"overfit accuracy over {len(labels)} Gaussians: {accuracy:.4f}")
     assert accuracy >= 0.95
-
-
-@pytest.mark.parametrize("rows", [7, 5000])          # one block, and two row blocks on the conv threads
-def test_unit_linear_equals_normalized_linear_and_does_not_depend_on_threads(rows):
-    assert len(_row_blocks(rows)) == (1 if rows < 4096 else 2)
-    g = torch.Generator().manual_seed(rows)
-    x, w, b = torch.randn(rows, 24, generator=g), torch.randn(40, 24, generator=g), torch.randn(40, generator=g)
-    probe = torch.randn(rows, 40, generator=g)
-    runs = []
-    for threads in (1, 2, 2):
-        leaves = [t.clone().requires_grad_() for t in (x, w, b)]
-        with conv_threads(threads):
-            y = unit_linear(*leaves)
-            (y * probe).sum().backward()
-        runs.append([y.detach().clone()] + [t.grad for t in leaves])
-    for other in runs[1:]:
-        assert all(torch.equal(a, c) for a, c in zip(runs[0], other))
-    leaves = [t.double().requires_grad_() for t in (x, w, b)]
-    ref = F.normalize(F.linear(*leaves), dim=1)
-    (ref * probe.double()).sum().backward()
-    for got, want in zip(runs[0], [ref.detach()] + [t.grad for t in leaves]):
-        torch.testing.assert_close(got, want.float(), rtol=1e-4, atol=1e-4)

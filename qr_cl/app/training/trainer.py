@@ -2,20 +2,24 @@
 
 Each step draws ``batch_scenes`` scenes (seeded by the step, identical on every rank); for each
 scene ``views`` random views are drawn, ``rays`` pixels per view inside masks are selected with
-the chosen sampler, GS-Net predicts the features of the Gaussians those selections use (the
-UNet runs on every voxel; de-voxelization, head and normalization only for those rows) and the
-rays rendered from them are scored by :func:`qr_cl.app.training.loss.contrastive_loss`. Adam;
-ReduceLROnPlateau (factor 0.1) on the mean loss of every ``plateau_interval`` steps.
+the chosen sampler, and the rays are rendered from GS-Net's features of the Gaussians those
+selections use: the UNet runs on every voxel, and the blend reads, per used Gaussian, its
+de-voxelized UNet feature scaled by the inverse norm of its head output
+(:meth:`~qr_cl.backbone.GSNet.head_inputs`, D + 1 channels); the head maps the rendered rays
+to feature_dim (a blend is linear, so these are the rays of the unit features, without a
+[U, feature_dim] table). The rays are scored by
+:func:`qr_cl.app.training.loss.contrastive_loss`. Adam; ReduceLROnPlateau (factor 0.1) on the mean
+loss of every ``plateau_interval`` steps.
 
 Where the time goes (demo rooms): the selections are geometry, so each view's
 whole-image selection is made once and a step's rays are gathered from it (up to
 ``view_selections_mb`` of them are kept; then views are selected ray by ray each step), and the
 next step's rays are made on a background thread while this step renders and back-propagates.
 Torch runs one intra-op thread (the CLI's ``--torch-threads``): its OpenMP workers spin-wait at
-barriers, and beside other busy processes two of them made a step many times slower than one. The
-sparse convolutions and GS-Net's head, most of a step, run as row blocks on
-:func:`conv_thread_count` threads (every core the process may use; results do not depend on
-the count, see :mod:`qr_cl.backbone.conv`), and PoCL runs the kernels on the same cores
+barriers, and beside other busy processes two of them made a step many times slower than one.
+The sparse convolutions, most of a step, run as row blocks on :func:`conv_thread_count` threads
+(every core the process may use; results do not depend on the count, see
+:mod:`qr_cl.backbone.conv`), and PoCL runs the kernels on the same cores
 (:func:`qr_cl.app.process.cap_kernel_threads`). They take turns: the training thread waits while it
 renders, and the next step's rays are started after the network's forward (its convolutions),
 beside the blend, so that a convolution thread and a PoCL worker are seldom both asked for one
@@ -152,10 +156,10 @@ class Trainer:
                 else self.make_rays(self.step, slot, scene) for slot, scene in mine]
         total, rays = torch.zeros(()), 0
         for i, ((slot, scene), step) in enumerate(zip(mine, made)):
-            table = self.net(self.batch(scene), torch.from_numpy(step.rows))
+            table = self.net.head_inputs(self.batch(scene), torch.from_numpy(step.rows))
             if i == 0 and self.step + 1 < cfg.steps:
                 self.prefetch(self.step + 1)
-            loss = rays_loss(step, table, cfg.temperature)
+            loss = rays_loss(step, table, cfg.temperature, self.net.apply_head)
             (loss / cfg.batch_scenes).backward()
             total += loss.detach() / cfg.batch_scenes
             rays += step.n_rays

@@ -1,0 +1,87 @@
+"""Training step time and busy cores of ``qr-cl train``, for one install or several back to back.
+
+A step's cost is measured as the difference of a long and a short run (``--long`` and
+``--short`` steps), so start-up (imports, scene loading, kernel builds, the first whole-view
+selections) cancels: ms per step = (wall_long - wall_short) / (long - short), and the cores a
+step keeps busy = (cpu_long - cpu_short) / (wall_long - wall_short), CPU being the user and
+system time of the child process (all its threads: torch, the convolution helper, PoCL's
+workers). The installs run alternately, one pair of runs each per round, so that a machine whose
+speed drifts affects them alike::
+
+    python bench/training_steps.py ~/.cache/qr-cl/scenes/splat-room-0-* \\
+        --python this=python --python before=<venv of the previous release>/bin/python --rounds 3
+
+Prints a Markdown table (the median over rounds of each install, and each one's speed relative
+to the first ``--python``) and writes it to ``--out`` when given.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import resource
+import statistics
+import subprocess
+import tempfile
+import time
+from pathlib import Path
+
+
+def run_train(python: str, room: str, steps: int, extra: list[str]) -> tuple[float, float]:
+    """(wall s, CPU s of the child) of ``qr-cl train room --steps steps`` under ``python``."""
+    with tempfile.TemporaryDirectory() as out:
+        before = resource.getrusage(resource.RUSAGE_CHILDREN)
+        start = time.perf_counter()
+        subprocess.run([python, "-m", "qr_cl.app.cli", "train", room, "--out", out, "--steps", str(steps),
+                        "--checkpoint-every", "100000", *extra], check=True, stdout=subprocess.DEVNULL,
+                       stderr=subprocess.DEVNULL)
+        wall = time.perf_counter() - start
+        after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return wall, (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("room", help="a scene folder (e.g. a demo room in ~/.cache/qr-cl/scenes)")
+    parser.add_argument("--python", action="append", metavar="LABEL=PYTHON",
+                        help="an install to measure (repeatable; default this=<this interpreter>)")
+    parser.add_argument("--short", type=int, default=30, help="steps of the short run (default 30)")
+    parser.add_argument("--long", type=int, default=120, help="steps of the long run (default 120)")
+    parser.add_argument("--rounds", type=int, default=3, help="rounds (default 3)")
+    parser.add_argument("--out", type=Path, help="write the table to this Markdown file")
+    parser.add_argument("train_args", nargs=argparse.REMAINDER, help="after --: more qr-cl train options")
+    args = parser.parse_args()
+    if args.long <= args.short:
+        parser.error(f"--long ({args.long}) must exceed --short ({args.short})")
+    import sys
+    installs = [p.split("=", 1) for p in (args.python or [f"this={sys.executable}"])]
+    if any(len(p) != 2 for p in installs):
+        parser.error("--python takes LABEL=PYTHON")
+    extra = [a for a in args.train_args if a != "--"]
+    results: dict[str, list[tuple[float, float]]] = {label: [] for label, _ in installs}
+    for r in range(args.rounds):
+        for label, python in installs:
+            short = run_train(python, args.room, args.short, extra)
+            long = run_train(python, args.room, args.long, extra)
+            wall, cpu = long[0] - short[0], long[1] - short[1]
+            results[label].append((1000 * wall / (args.long - args.short), cpu / wall))
+            print(f"round {r + 1} {label}: {results[label][-1][0]:.1f} ms/step, {results[label][-1][1]:.2f} cores",
+                  flush=True)
+    first = statistics.median(ms for ms, _ in results[installs[0][0]])
+    lines = [f"`qr-cl train {Path(args.room).name}` {' '.join(extra)}: steps {args.short} and {args.long}, "
+             f"{args.rounds} rounds, {os.cpu_count()} CPUs", "",
+             f"| install | ms per step (median) | rounds | cores busy (median) | steps/s vs {installs[0][0]} |",
+             "| --- | --- | --- | --- | --- |"]
+    for label, _ in installs:
+        ms = [m for m, _ in results[label]]
+        cores = statistics.median(c for _, c in results[label])
+        lines.append(f"| {label} | {statistics.median(ms):.1f} | {', '.join(f'{m:.1f}' for m in ms)} | {cores:.2f} | "
+                     f"{first / statistics.median(ms):.2f}x |")
+    table = "\n".join(lines)
+    print(table)
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(table + "\n")
+
+
+if __name__ == "__main__":
+    main()
