@@ -72,10 +72,9 @@ class GSNet(nn.Module):
         int64 indices into the batch's Gaussians) that a renderer can blend in place of their
         features: Gaussian u's row is ``(x_u / |z_u|, 1 / |z_u|)``, x_u its de-voxelized UNet
         feature and z_u = head(x_u) (its feature before normalization), so for any weights
-        :meth:`apply_head` of ``sum_u w_u row_u`` is ``sum_u w_u F_u``, F_u = z_u / |z_u| the
-        feature :meth:`forward` gives. A blend is linear in the table, so rendering these D + 1
-        channels and applying the head to the rays gives the rays of the [U, feature_dim] table
-        without making it (a training step renders far fewer channels than feature_dim).
+        ``(sum_u w_u row_u) @ head_matrix().T`` is ``sum_u w_u F_u``, F_u = z_u / |z_u| the feature
+        :meth:`forward` gives. A blend is linear in the table, so rendering these D + 1 channels
+        gives the rays of the [U, feature_dim] table without making it.
 
         The UNet runs on every voxel (a Gaussian's feature depends on its neighbourhood); the
         de-voxelization and the norms are taken for ``rows`` only. |z_u| comes from the head's
@@ -88,10 +87,10 @@ class GSNet(nn.Module):
         inv = squared.clamp_min(1e-24).rsqrt().float()[:, None]
         return torch.cat([x * inv, inv], 1)
 
-    def apply_head(self, sums: Tensor) -> Tensor:
-        """Features ``[P, feature_dim]`` of weighted sums ``[P, D + 1]`` of :meth:`head_inputs`
-        rows: ``sums[:, :D] @ W^T + sums[:, D] b`` (the head's weight W and bias b)."""
-        return torch.addmm(sums[:, -1:] * self.head.bias, sums[:, :-1], self.head.weight.T)
+    def head_matrix(self) -> Tensor:
+        """The head as one matrix ``[feature_dim, D + 1]`` on sums of :meth:`head_inputs` rows:
+        ``(W | b)``, so that a sum ``(a, s)`` [D + 1] maps to ``W a + s b``."""
+        return torch.cat([self.head.weight, self.head.bias[:, None]], 1)
 
     def _voxel_features(self, batch: VoxelBatch) -> Tensor:
         """The UNet's features ``[M, D]`` of the batch's voxels (checking it was made by :meth:`prepare`)."""

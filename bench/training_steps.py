@@ -11,7 +11,8 @@ speed drifts affects them alike::
     python bench/training_steps.py ~/.cache/qr-cl/scenes/splat-room-0-* \\
         --python this=python --python before=<venv of the previous release>/bin/python --rounds 3
 
-Prints a Markdown table (the median over rounds of each install, and each one's speed relative
+Options this script does not know are passed to ``qr-cl train`` (e.g. ``--net tiny``). Prints a
+Markdown table (the median over rounds of each install, and each one's speed relative
 to the first ``--python``) and writes it to ``--out`` when given.
 """
 from __future__ import annotations
@@ -27,13 +28,14 @@ from pathlib import Path
 
 
 def run_train(python: str, room: str, steps: int, extra: list[str]) -> tuple[float, float]:
-    """(wall s, CPU s of the child) of ``qr-cl train room --steps steps`` under ``python``."""
+    """(wall s, CPU s of the child) of ``qr-cl train room --steps steps`` under ``python`` (the
+    install that interpreter imports)."""
     with tempfile.TemporaryDirectory() as out:
         before = resource.getrusage(resource.RUSAGE_CHILDREN)
         start = time.perf_counter()
         subprocess.run([python, "-m", "qr_cl.app.cli", "train", room, "--out", out, "--steps", str(steps),
                         "--checkpoint-every", "100000", *extra], check=True, stdout=subprocess.DEVNULL,
-                       stderr=subprocess.DEVNULL)
+                       stderr=subprocess.DEVNULL, cwd=out)      # not this checkout: python -m imports from the cwd
         wall = time.perf_counter() - start
         after = resource.getrusage(resource.RUSAGE_CHILDREN)
     return wall, (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
@@ -48,15 +50,13 @@ def main() -> None:
     parser.add_argument("--long", type=int, default=120, help="steps of the long run (default 120)")
     parser.add_argument("--rounds", type=int, default=3, help="rounds (default 3)")
     parser.add_argument("--out", type=Path, help="write the table to this Markdown file")
-    parser.add_argument("train_args", nargs=argparse.REMAINDER, help="after --: more qr-cl train options")
-    args = parser.parse_args()
+    args, extra = parser.parse_known_args()            # the rest are qr-cl train options
     if args.long <= args.short:
         parser.error(f"--long ({args.long}) must exceed --short ({args.short})")
     import sys
     installs = [p.split("=", 1) for p in (args.python or [f"this={sys.executable}"])]
     if any(len(p) != 2 for p in installs):
         parser.error("--python takes LABEL=PYTHON")
-    extra = [a for a in args.train_args if a != "--"]
     results: dict[str, list[tuple[float, float]]] = {label: [] for label, _ in installs}
     for r in range(args.rounds):
         for label, python in installs:

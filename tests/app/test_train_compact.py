@@ -10,7 +10,7 @@ import torch.nn.functional as F
 from qr_cl.app.scenes.folders import load_scene_folder
 from qr_cl.app.training import trainer as trainer_module
 from qr_cl.app.training.config import TrainConfig
-from qr_cl.app.training.loss import contrastive_loss, cosine_logits
+from qr_cl.app.training.loss import contrastive_loss, cosine_logits, head_cosine_logits
 from qr_cl.app.training.rays import rays_loss, sample_rays, scene_loss, step_rays
 from qr_cl.app.training.trainer import conv_thread_count, train
 from qr_cl.backbone import GSNet, VoxelConfig, conv, devoxelize, minkunet14
@@ -50,9 +50,9 @@ def test_devoxelize_rows_are_rows_of_the_full_result(shape, reduce):
 
 @pytest.mark.parametrize("shape,reduce", [("center", "max"), ("volume", "max"), ("volume", "mean")])
 def test_head_of_blended_head_inputs_is_the_blend_of_the_features(shape, reduce):
-    """apply_head of weighted sums of head_inputs rows equals the same weighted sums of the rows
-    of forward (values, and gradients w.r.t. every parameter): rendering D + 1 channels and
-    applying the head to the rays gives the rays of the unit features."""
+    """Weighted sums of head_inputs rows mapped by head_matrix equal the same weighted sums of
+    the rows of forward (values, and gradients w.r.t. every parameter): rendering D + 1 channels
+    and applying the head to the rays gives the rays of the unit features."""
     torch.manual_seed(0)
     net = GSNet(16, VoxelConfig(grid_size=0.05, sample_shape=shape), minkunet14(7, **SMALL), reduce=reduce).eval()
     batch = net.prepare(random_gaussians(150, 4))
@@ -61,7 +61,8 @@ def test_head_of_blended_head_inputs_is_the_blend_of_the_features(shape, reduce)
     weights[0] = torch.tensor([1.0, 0, 0, 0, 0])            # a ray of one Gaussian: its own feature
     probe = torch.randn(6, 16, generator=torch.Generator().manual_seed(2))
     grads = []
-    for rays in (lambda: weights @ net(batch)[rows], lambda: net.apply_head(weights @ net.head_inputs(batch, rows))):
+    for rays in (lambda: weights @ net(batch)[rows],
+                 lambda: weights @ net.head_inputs(batch, rows) @ net.head_matrix().T):
         net.zero_grad()
         value = rays()
         (value * probe).sum().backward()
@@ -183,6 +184,31 @@ def test_cosine_logits_match_normalize_and_its_gradient():
     torch.testing.assert_close(mine.grad, ref.grad, rtol=1e-10, atol=1e-12)
     with pytest.raises(ValueError, match="split"):
         cosine_logits(mine, [4, 4], masks[:2], 0.1)
+
+
+def test_head_cosine_logits_are_the_cosine_logits_of_the_headed_rays():
+    """head_cosine_logits(sums, head) equals cosine_logits(sums @ head.T) (float32, values and
+    gradients w.r.t. sums and head), also for a ray whose headed feature is zero."""
+    gen = torch.Generator().manual_seed(1)
+    sums = torch.randn(9, 5, generator=gen)
+    head = torch.randn(12, 5, generator=gen)
+    sums[4] = 0                                               # a ray that selected nothing
+    masks = [F.normalize(torch.randn(m, 12, generator=gen), dim=1) for m in (3, 2, 4)]
+    sizes = [4, 0, 5]
+    probes = [torch.randn(n, len(m), generator=gen) for n, m in zip(sizes, masks)]
+    results = []
+    for logits in (lambda s, h: cosine_logits(s @ h.T, sizes, masks, 0.1),
+                   lambda s, h: head_cosine_logits(s, h, sizes, masks, 0.1)):
+        leaves = [sums.clone().requires_grad_(), head.clone().requires_grad_()]
+        got = logits(*leaves)
+        sum((g * p).sum() for g, p in zip(got, probes)).backward()
+        results.append(([g.detach() for g in got], [t.grad for t in leaves]))
+    (want, want_grads), (got, got_grads) = results
+    for g, w in zip(got + got_grads, want + want_grads):
+        torch.testing.assert_close(g, w, rtol=1e-4, atol=1e-4)
+    assert got[1].shape == (0, 2) and torch.equal(got[2][0], torch.zeros(4))
+    with pytest.raises(ValueError, match="head"):
+        head_cosine_logits(sums, head[:, :4], sizes, masks, 0.1)
 
 
 FREED_AND_AGAIN = """

@@ -37,6 +37,25 @@ def cosine_logits(rendered: torch.Tensor, sizes: list[int], mask_features: list[
     return _CosineLogits.apply(rendered, float(temperature), tuple(int(n) for n in sizes), *mask_features)
 
 
+def head_cosine_logits(sums: torch.Tensor, head: torch.Tensor, sizes: list[int], mask_features: list[torch.Tensor],
+                       temperature: float) -> tuple[torch.Tensor, ...]:
+    """:func:`cosine_logits` of the rays ``sums @ head.T`` without making them: ``sums`` [P,D]
+    (e.g. rendered :meth:`~qr_cl.backbone.GSNet.head_inputs` rows, D + 1 channels there) and
+    ``head`` [C,D] (:meth:`~qr_cl.backbone.GSNet.head_matrix`). A ray's similarity to a mask m is
+    ``sums . (head.T m)`` over its norm ``sqrt(sums . (head.T head) sums)`` (the Gram matrix, in
+    float64; a norm under 1e-12 taken as 1e-12, as F.normalize does), so the cost is O(P D (M +
+    D)) instead of O(P C (D + M)): the [P,C] rays are never formed."""
+    if sum(sizes) != sums.shape[0] or len(sizes) != len(mask_features):
+        raise ValueError(f"sizes {list(sizes)} must split the {sums.shape[0]} rays among "
+                         f"{len(mask_features)} views")
+    if head.ndim != 2 or head.shape[1] != sums.shape[1]:
+        raise ValueError(f"head {tuple(head.shape)} must be [C, {sums.shape[1]}] for sums {tuple(sums.shape)}")
+    wide = sums.double()
+    inv = ((wide @ (head.T @ head).double()) * wide).sum(1, keepdim=True).clamp_min(1e-24).rsqrt().float()
+    return tuple(s @ (m @ head).T * i / temperature
+                 for s, i, m in zip(sums.split(sizes), inv.split(sizes), mask_features))
+
+
 class _CosineLogits(torch.autograd.Function):
     """:func:`cosine_logits`: logits_v = (r_v @ M_v^T) * inv_v / T with inv = 1 / max(|r|, 1e-12)
     (F.normalize's clamp); d r_v = s_v @ M_v - (sum_m s_v * (r_v @ M_v^T)) inv_v^2 r_v with

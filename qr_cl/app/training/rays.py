@@ -9,7 +9,7 @@ into it (:func:`rays_loss`); the gradient flows back through those U rows only."
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Protocol
+from typing import Protocol
 
 import numpy as np
 import torch
@@ -18,7 +18,7 @@ import torch.nn.functional as F
 from ...render import SelectionCache, blend, rasterize_plan
 from ...stages import RasterPlan, Selection, select
 from ..scenes.folders import Frame, SceneData
-from .loss import cosine_logits
+from .loss import cosine_logits, head_cosine_logits
 from .selections import CompactSelection, compact_selections, concat_selections, gather_rays
 
 
@@ -112,19 +112,20 @@ def step_rays(scene: SceneData, cfg: RaySettings, rng: np.random.Generator,
     return StepRays(rows, compact, targets, masks, len(scene.gaussians))
 
 
-def rays_loss(rays: StepRays, table: torch.Tensor, temperature: float,
-              head: Callable[[torch.Tensor], torch.Tensor] | None = None) -> torch.Tensor:
+def rays_loss(rays: StepRays, table: torch.Tensor, temperature: float, head: torch.Tensor | None = None) -> torch.Tensor:
     """Mean over the step's views of the contrastive loss of its rays rendered from ``table``
     [U,C] (the rows of the Gaussians ``rays.rows``, in that order; gradients flow to it). With
-    ``head``, the rendered rays [P,C] are mapped by it before the loss: a table of
-    :meth:`~qr_cl.backbone.GSNet.head_inputs` rows with ``head`` its network's
-    :meth:`~qr_cl.backbone.GSNet.apply_head`."""
+    ``head`` [C',C] the rays are ``rendered @ head.T``, scored without being made
+    (:func:`~qr_cl.app.training.loss.head_cosine_logits`): a table of
+    :meth:`~qr_cl.backbone.GSNet.head_inputs` rows with its network's
+    :meth:`~qr_cl.backbone.GSNet.head_matrix`."""
     if table.ndim != 2 or table.shape[0] != len(rays.rows):
         raise ValueError(f"table must be [{len(rays.rows)}, C] (one row per Gaussian in rays.rows), "
                          f"got {tuple(table.shape)}")
-    rendered = blend(rays.selection, table)
-    logits = cosine_logits(rendered if head is None else head(rendered), [len(t) for t in rays.targets],
-                           [torch.from_numpy(m) for m in rays.mask_features], temperature)
+    rendered, sizes = blend(rays.selection, table), [len(t) for t in rays.targets]
+    masks = [torch.from_numpy(m) for m in rays.mask_features]
+    logits = cosine_logits(rendered, sizes, masks, temperature) if head is None else \
+        head_cosine_logits(rendered, head, sizes, masks, temperature)
     losses = [F.cross_entropy(view, torch.from_numpy(target)) for view, target in zip(logits, rays.targets)]
     return torch.stack(losses).mean()
 

@@ -5,10 +5,11 @@ scene ``views`` random views are drawn, ``rays`` pixels per view inside masks ar
 the chosen sampler, and the rays are rendered from GS-Net's features of the Gaussians those
 selections use: the UNet runs on every voxel, and the blend reads, per used Gaussian, its
 de-voxelized UNet feature scaled by the inverse norm of its head output
-(:meth:`~qr_cl.backbone.GSNet.head_inputs`, D + 1 channels); the head maps the rendered rays
-to feature_dim (a blend is linear, so these are the rays of the unit features, without a
-[U, feature_dim] table). The rays are scored by
-:func:`qr_cl.app.training.loss.contrastive_loss`. Adam; ReduceLROnPlateau (factor 0.1) on the mean
+(:meth:`~qr_cl.backbone.GSNet.head_inputs`, D + 1 channels). A blend is linear, so the head
+applied to these rendered rays gives the rays of the unit features; the loss
+(:func:`qr_cl.app.training.loss.contrastive_loss`) scores them through the head's matrix without
+forming them (:func:`~qr_cl.app.training.loss.head_cosine_logits`): no [U, feature_dim] table and
+no [rays, feature_dim] rays. Adam; ReduceLROnPlateau (factor 0.1) on the mean
 loss of every ``plateau_interval`` steps.
 
 Where the time goes (demo rooms): the selections are geometry, so each view's
@@ -159,7 +160,7 @@ class Trainer:
             table = self.net.head_inputs(self.batch(scene), torch.from_numpy(step.rows))
             if i == 0 and self.step + 1 < cfg.steps:
                 self.prefetch(self.step + 1)
-            loss = rays_loss(step, table, cfg.temperature, self.net.apply_head)
+            loss = rays_loss(step, table, cfg.temperature, self.net.head_matrix())
             (loss / cfg.batch_scenes).backward()
             total += loss.detach() / cfg.batch_scenes
             rays += step.n_rays
