@@ -77,14 +77,14 @@ class GSNet(nn.Module):
         gives the rays of the [U, feature_dim] table without making it.
 
         The UNet runs on every voxel (a Gaussian's feature depends on its neighbourhood); the
-        de-voxelization and the norms are taken for ``rows`` only. |z_u| comes from the head's
-        Gram matrix (``|z|^2 = x.G.x + 2 c.x + |b|^2``, G = W^T W, c = W^T b, in float64); a
+        de-voxelization and the norms are taken for ``rows`` only. |z_u| = |R (x_u, 1)| with R the
+        [D + 1, D + 1] triangle of the QR decomposition of :meth:`head_matrix` (its Q has
+        orthonormal columns), as accurate as forming z_u without its feature_dim channels; a
         norm under 1e-12 is taken as 1e-12, as ``F.normalize`` does."""
         x = devoxelize(self._voxel_features(batch), batch, self.reduce, rows)
-        w, b = self.head.weight.double(), self.head.bias.double()
-        xd = x.double()
-        squared = ((xd @ (w.T @ w)) * xd).sum(1) + 2 * (xd @ (w.T @ b)) + b @ b
-        inv = squared.clamp_min(1e-24).rsqrt().float()[:, None]
+        r = torch.linalg.qr(self.head_matrix()).R
+        inv = torch.linalg.vector_norm(torch.addmm(r[:, -1], x, r[:, :-1].T), dim=1, keepdim=True)
+        inv = inv.clamp_min(1e-12).reciprocal()
         return torch.cat([x * inv, inv], 1)
 
     def head_matrix(self) -> Tensor:
