@@ -77,10 +77,10 @@ class GSNet(nn.Module):
         gives the rays of the [U, feature_dim] table without making it.
 
         The UNet runs on every voxel (a Gaussian's feature depends on its neighbourhood); the
-        de-voxelization and the norms are taken for ``rows`` only. |z_u| = |R (x_u, 1)| with R the
-        [D + 1, D + 1] triangle of the QR decomposition of :meth:`head_matrix` (its Q has
-        orthonormal columns), as accurate as forming z_u without its feature_dim channels; a
-        norm under 1e-12 is taken as 1e-12, as ``F.normalize`` does."""
+        de-voxelization and the norms are taken for ``rows`` only. |z_u| = |R (x_u, 1)| with
+        :meth:`head_matrix` = QR (Q's columns orthonormal, R [min(feature_dim, D + 1), D + 1]), as
+        accurate as forming z_u, without its feature_dim channels; a norm under 1e-12 is taken as
+        1e-12, as ``F.normalize`` does."""
         x = devoxelize(self._voxel_features(batch), batch, self.reduce, rows)
         r = torch.linalg.qr(self.head_matrix()).R
         inv = torch.linalg.vector_norm(torch.addmm(r[:, -1], x, r[:, :-1].T), dim=1, keepdim=True)

@@ -186,14 +186,15 @@ def test_cosine_logits_match_normalize_and_its_gradient():
         cosine_logits(mine, [4, 4], masks[:2], 0.1)
 
 
-def test_head_cosine_logits_are_the_cosine_logits_of_the_headed_rays():
+@pytest.mark.parametrize("channels", [12, 3])                 # more channels than sums have, and fewer
+def test_head_cosine_logits_are_the_cosine_logits_of_the_headed_rays(channels):
     """head_cosine_logits(sums, head) equals cosine_logits(sums @ head.T) (float32, values and
     gradients w.r.t. sums and head), also for a ray whose headed feature is zero."""
     gen = torch.Generator().manual_seed(1)
     sums = torch.randn(9, 5, generator=gen)
-    head = torch.randn(12, 5, generator=gen)
+    head = torch.randn(channels, 5, generator=gen)
     sums[4] = 0                                               # a ray that selected nothing
-    masks = [F.normalize(torch.randn(m, 12, generator=gen), dim=1) for m in (3, 2, 4)]
+    masks = [F.normalize(torch.randn(m, channels, generator=gen), dim=1) for m in (3, 2, 4)]
     sizes = [4, 0, 5]
     probes = [torch.randn(n, len(m), generator=gen) for n, m in zip(sizes, masks)]
     results = []

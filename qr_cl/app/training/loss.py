@@ -42,16 +42,14 @@ def head_cosine_logits(sums: torch.Tensor, head: torch.Tensor, sizes: list[int],
     """:func:`cosine_logits` of the rays ``sums @ head.T`` without making them: ``sums`` [P,D]
     (e.g. rendered :meth:`~qr_cl.backbone.GSNet.head_inputs` rows, D + 1 channels there) and
     ``head`` [C,D] (:meth:`~qr_cl.backbone.GSNet.head_matrix`). A ray's similarity to a mask m is
-    ``sums . (head.T m)`` over its norm ``|R sums|`` (R: the [D,D] triangle of head's QR
-    decomposition, whose Q has orthonormal columns; a norm under 1e-12 taken as 1e-12, as
-    F.normalize does), so the cost is O(P D (M + D)) instead of O(P C (D + M)): the [P,C] rays
-    are never formed."""
+    ``sums . (head.T m)`` over its norm ``|R sums|`` (head = QR with Q's columns orthonormal, R
+    [min(C, D), D]; a norm under 1e-12 taken as 1e-12, as F.normalize does), so the cost is
+    O(P D (M + D)) instead of O(P C (D + M)): the [P,C] rays are never formed."""
     if sum(sizes) != sums.shape[0] or len(sizes) != len(mask_features):
         raise ValueError(f"sizes {list(sizes)} must split the {sums.shape[0]} rays among "
                          f"{len(mask_features)} views")
-    if head.ndim != 2 or head.shape[1] != sums.shape[1] or head.shape[0] < head.shape[1]:
-        raise ValueError(f"head {tuple(head.shape)} must be [C >= {sums.shape[1]}, {sums.shape[1]}] "
-                         f"for sums {tuple(sums.shape)}")
+    if head.ndim != 2 or head.shape[1] != sums.shape[1]:
+        raise ValueError(f"head {tuple(head.shape)} must be [C, {sums.shape[1]}] for sums {tuple(sums.shape)}")
     r = torch.linalg.qr(head).R
     inv = torch.linalg.vector_norm(sums @ r.T, dim=1, keepdim=True).clamp_min(1e-12).reciprocal()
     return tuple(s @ (m @ head).T * i / temperature
