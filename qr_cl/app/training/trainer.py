@@ -9,8 +9,8 @@ de-voxelized UNet feature scaled by the inverse norm of its head output
 applied to these rendered rays gives the rays of the unit features; the loss
 (:func:`qr_cl.app.training.loss.contrastive_loss`) scores them through the head's matrix without
 forming them (:func:`~qr_cl.app.training.loss.head_cosine_logits`): no [U, feature_dim] table and
-no [rays, feature_dim] rays. Adam; ReduceLROnPlateau (factor 0.1) on the mean
-loss of every ``plateau_interval`` steps.
+no [rays, feature_dim] rays. Adam; ReduceLROnPlateau (factor 0.1) on the mean loss of every
+``plateau_interval`` steps.
 
 Where the time goes (demo rooms): the selections are geometry, so each view's
 whole-image selection is made once and a step's rays are gathered from it (up to
