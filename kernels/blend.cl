@@ -5,7 +5,10 @@
 
    Rows are cstride floats (a multiple of VW * NV), read and written with explicit vector types as
    in vrender.cl; built with -DHALF_ROWS, the kernels that read the feature table read half rows
-   (ROW_T) and the feature backward is left out. The forward runs one work-item per (row, channel
+   (ROW_T) and the feature backward is left out. A table larger than one device buffer is passed
+   in row parts: features (and dF) hold the rows [row0, row0 + n_rows) of the table, entries of
+   other Gaussians are skipped, and the image is the sum of the parts' blends (it is linear in
+   the features), the background added by one part. The forward runs one work-item per (row, channel
    chunk of NV vectors of VW floats). The backward sums each Gaussian's entries in one fixed
    order, by ray then by position in the ray, without atomics, so its result is bitwise
    reproducible; two kernels give the same bytes: a gather over the selection transposed by
@@ -15,52 +18,56 @@
 #include "common.h"
 
 /* Forward. Rays as in select.cl (full image tile-major, or a pixel subset); entries of row p
-   are [offsets[p], offsets[p] + count[p]). */
+   are [offsets[p], offsets[p] + count[p]). accumulate: add to the image (a later row part). */
 __kernel void blend(__global const int *offsets, __global const int *count,
                     __global const int *sel_ids, __global const float *sel_w,
-                    const int n_entries, __global const ROW_T *features,   /* [N, cstride] */
-                    const int n, const int cstride, const int full, const int n_rays, const int width, const int height,
+                    const int n_entries, __global const ROW_T *features,   /* [n_rows, cstride] */
+                    const int row0, const int n_rows, const int cstride, const int full, const int n_rays,
+                    const int width, const int height,
                     const int tiles_x, __global const float *background,   /* [cstride] */
-                    __global const float *t_rem, const int use_bg,
+                    __global const float *t_rem, const int use_bg, const int accumulate,
                     const int stream,                      /* write the image with VSTREAM */
                     __global float *image) {               /* [P, cstride] */
     int p;
     if (!ray_row(get_global_id(0), full, n_rays, width, height, tiles_x, &p)) return;
     const int2 span = ray_span(offsets, count, p, n_entries);
-    blend_entries(sel_ids + span.x, sel_w + span.x, span.y - span.x, features, n, cstride,
-                  get_global_id(1) * NV * VW, use_bg ? t_rem[p] : 0.f, background, use_bg, stream,
+    blend_entries(sel_ids + span.x, sel_w + span.x, span.y - span.x, features, row0, n_rows, cstride,
+                  get_global_id(1) * NV * VW, use_bg ? t_rem[p] : 0.f, background, use_bg, accumulate, stream,
                   image + (size_t)p * cstride);
 }
 
 #ifndef HALF_ROWS   /* the feature backward reads and writes float rows only */
 /* Backward gather: dF[g, chunk] = sum over Gaussian g's transposed entries of w dImage[p, chunk],
    in the fixed order of the transpose. One work-item per (Gaussian, channel chunk), Gaussians
-   taken in the order ``order`` (by their first ray, so neighbours read neighbouring rows). */
-__kernel void blend_backward(const int n, __global const int *order,   /* [N] Gaussian of each work-item */
+   taken in the order ``order`` (by their first ray, so neighbours read neighbouring rows): the n
+   Gaussians of the row part [row0, ...) that dF holds. */
+__kernel void blend_backward(const int n, __global const int *order,   /* [n] Gaussian of each work-item */
                              const int n_chunks, __global const int *cursor,
                              __global const int *t_ray, __global const float *t_w,
                              __global const float *dimage, const int n_rays,   /* [P, cstride] */
-                             const int cstride, __global float *dfeatures) {   /* [N, cstride] */
+                             const int cstride, const int row0,
+                             __global float *dfeatures) {              /* [n, cstride] */
     if (get_global_id(0) >= n) return;
     const int g = order[get_global_id(0)];
     const int start = g ? cursor[g * n_chunks - 1] : 0;
     const int end = cursor[(g + 1) * n_chunks - 1];
-    blend_entries(t_ray + start, t_w + start, end - start, dimage, n_rays, cstride, get_global_id(1) * NV * VW,
-                  0.f, dimage, 0, 0, dfeatures + (size_t)g * cstride);   /* no background */
+    blend_entries(t_ray + start, t_w + start, end - start, dimage, 0, n_rays, cstride, get_global_id(1) * NV * VW,
+                  0.f, dimage, 0, 0, 0, dfeatures + (size_t)(g - row0) * cstride);   /* no background */
 }
 
-/* Backward scatter: work-item m owns the Gaussians [bounds[m], bounds[m + 1]). It walks every ray
-   in order and adds w dImage[p, :] to the rows of dF of the Gaussians it owns (the first entry
-   of a Gaussian writes 0 + w dImage[p, :], marking it in touched, zeroed by the host), then
-   zeroes the rows of its Gaussians without entries. Each owner reads all the entries' ids but
-   only its own entries' rows. */
+/* Backward scatter: work-item m owns the Gaussians [bounds[m], bounds[m + 1]), within the row part
+   [row0, ...) that dF and touched hold. It walks every ray in order and adds w dImage[p, :] to
+   the rows of dF of the Gaussians it owns (the first entry of a Gaussian writes 0 + w dImage[p, :],
+   marking it in touched, zeroed by the host), then zeroes the rows of its Gaussians without
+   entries. Each owner reads all the entries' ids but only its own entries' rows. */
 __kernel void blend_backward_scatter(const int n_owners, __global const int *bounds, const int n_rays,
                                      __global const int *offsets, __global const int *count,
                                      const int n_entries, __global const int *sel_ids,
                                      __global const float *sel_w,
                                      __global const float *dimage,   /* [P, cstride] */
-                                     const int cstride, __global uchar *touched,   /* [N] */
-                                     __global float *dfeatures) {   /* [N, cstride] */
+                                     const int cstride, const int row0,
+                                     __global uchar *touched,        /* [part rows] */
+                                     __global float *dfeatures) {    /* [part rows, cstride] */
     const int m = get_global_id(0);
     if (m >= n_owners) return;
     const int g0 = bounds[m], g1 = bounds[m + 1], n_vec = cstride / VW;
@@ -71,17 +78,17 @@ __kernel void blend_backward_scatter(const int n_owners, __global const int *bou
             const int g = sel_ids[j];
             if (g < g0 || g >= g1) continue;
             const float w = sel_w[j];
-            __global float *out = dfeatures + (size_t)g * cstride;
-            if (touched[g])
+            __global float *out = dfeatures + (size_t)(g - row0) * cstride;
+            if (touched[g - row0])
                 for (int v = 0; v < n_vec; v++) VSTORE(VLOAD(v, out) + w * VLOAD(v, d), v, out);
             else
                 for (int v = 0; v < n_vec; v++) VSTORE(0.f + w * VLOAD(v, d), v, out);
-            touched[g] = 1;
+            touched[g - row0] = 1;
         }
     }
     for (int g = g0; g < g1; g++)
-        if (!touched[g])
-            for (int v = 0; v < n_vec; v++) VSTREAM((vec_t)(0.f), v, dfeatures + (size_t)g * cstride);
+        if (!touched[g - row0])
+            for (int v = 0; v < n_vec; v++) VSTREAM((vec_t)(0.f), v, dfeatures + (size_t)(g - row0) * cstride);
 }
 #endif
 
@@ -94,49 +101,61 @@ __kernel void rows_to_half(const long n, __global const float *src, __global hal
 
 /* ---- gradients w.r.t. the geometry: dL/dalpha per entry, then per Gaussian splat ---- */
 
+/* dL/dw_j = g_j = dImage[p] . F[id_j] of ray p's entries whose Gaussian is in the row part
+   [row0, row0 + n_rows) that features hold, into d_w (the layout of sel_ids); other entries are
+   left to the other parts. One work-item per ray. The input of blend_backward_alpha. */
+__kernel void weight_grads(const int n_rays, __global const int *offsets, __global const int *count,
+                           const int n_entries, __global const int *sel_ids,
+                           __global const ROW_T *features,   /* [n_rows, cstride] */
+                           const int row0, const int n_rows,
+                           __global const float *dimage,     /* [P, cstride] */
+                           const int cstride, __global float *d_w) {
+    const int p = get_global_id(0);
+    if (p >= n_rays) return;
+    const int2 span = ray_span(offsets, count, p, n_entries);
+    __global const float *di = dimage + (size_t)p * cstride;
+    for (int j = span.x; j < span.y; j++) {
+        const uint id = (uint)sel_ids[j] - (uint)row0;   /* wraps below row0: skipped too */
+        if (id >= (uint)n_rows) continue;
+        __global const ROW_T *f = features + (size_t)id * cstride;
+        vec_t acc = (vec_t)(0.f);
+        for (int v = 0; v < cstride / VW; v++) acc += RLOAD(v, f) * VLOAD(v, di);
+        d_w[j] = vec_sum(acc);
+    }
+}
+
 /* Backward of the blend w.r.t. the alphas a_j of ray p's entries (depth order; recomputed from
-   the splats at the pixel centre), with g_j = dImage[p] . F[id_j]:
+   the splats at the pixel centre), from g_j = dL/dw_j (weight_grads of every row part, in
+   d_alpha on entry):
    volume (normalized == 0): w_j = T_j a_j, T_j = prod_{i<j} (1 - a_i), the background weight is
        the final T, whose gradient is d_trem[p]:
        dL/da_j = T_j g_j - (sum_{i>j} g_i w_i + d_trem T) / (1 - a_j)
    K samplers (normalized != 0): w_j = u_j / U with u_j = T_j a_j among the selected and
        U = sum_j u_j (= 1 - T^Q), so dL/du_j = h_j = (g_j - sum_i g_i w_i) / U and
        dL/da_j = T_j h_j - (sum_{i>j} h_i u_i) / (1 - a_j)
-   One work-item per ray; d_alpha has the layout of sel_ids. Rows are cstride floats. Entries
-   whose id is outside the n Gaussians count as alpha 0 (d_alpha 0). */
+   One work-item per ray; d_alpha has the layout of sel_ids. Entries whose id is outside the n
+   Gaussians count as alpha 0 (d_alpha 0). */
 __kernel void blend_backward_alpha(const int n_rays, const int full, const int width,
                                    __global const int2 *pixels,
                                    __global const int *offsets, __global const int *count,
                                    const int n_entries, const int n,
                                    __global const int *sel_ids, __global const float *sel_w,
-                                   __global const float8 *splats,
-                                   __global const ROW_T *features,   /* [N, cstride] */
-                                   __global const float *dimage,     /* [P, cstride] */
-                                   const int cstride, const int normalized,
+                                   __global const float8 *splats, const int normalized,
                                    __global const float *d_trem, __global float *d_alpha) {
     const int p = get_global_id(0);
     if (p >= n_rays) return;
     const float2 pix = ray_pixel(p, full, width, pixels);
     const int2 span = ray_span(offsets, count, p, n_entries);
     const int start = span.x, end = span.y;
-    __global const float *di = dimage + (size_t)p * cstride;
-    float gw = 0.f;                                   /* pass 1: g_j (kept in d_alpha), sum g w */
+    float gw = 0.f, T = 1.f, U = 0.f;                 /* pass 1: sum g w, the final T and U */
     for (int j = start; j < end; j++) {
-        d_alpha[j] = 0.f;
-        if ((uint)sel_ids[j] >= (uint)n) continue;
-        __global const ROW_T *f = features + (size_t)sel_ids[j] * cstride;
-        vec_t acc = (vec_t)(0.f);
-        for (int v = 0; v < cstride / VW; v++) acc += RLOAD(v, f) * VLOAD(v, di);
-        d_alpha[j] = vec_sum(acc);
+        if ((uint)sel_ids[j] >= (uint)n) { d_alpha[j] = 0.f; continue; }
         gw += d_alpha[j] * sel_w[j];
-    }
-    float T = 1.f, U = 0.f;                           /* pass 2: the final T and U */
-    for (int j = start; j < end; j++) {
-        const float a = (uint)sel_ids[j] < (uint)n ? splat_alpha(splats[sel_ids[j]], pix.x, pix.y) : 0.f;
+        const float a = splat_alpha(splats[sel_ids[j]], pix.x, pix.y);
         U += T * a;
         T *= 1.f - a;
     }
-    float S = normalized ? 0.f : d_trem[p] * T;      /* pass 3, back to front: S = sum_{i>j} ... */
+    float S = normalized ? 0.f : d_trem[p] * T;      /* pass 2, back to front: S = sum_{i>j} ... */
     for (int j = end - 1; j >= start; j--) {
         if ((uint)sel_ids[j] >= (uint)n) continue;
         const float a = splat_alpha(splats[sel_ids[j]], pix.x, pix.y);

@@ -387,23 +387,27 @@ typedef CAT(float, VW) vec_t;
 #endif
 #endif
 
-/* out[c0, c0 + NV * VW) of one image row = sum over the n entries (ids[j], w[j]) of
-   w[j] features[ids[j], c0 ...] + tb * background[c0 ...] (the background only when use_bg),
-   summed in float in entry order RV vectors at a time; written with VSTREAM when stream. Ids
-   outside the n_rows rows of features are skipped. */
+/* out[c0, c0 + NV * VW) of one image row = (accumulate ? out : 0) + sum over the n entries
+   (ids[j], w[j]) of w[j] features[ids[j] - row0, c0 ...] + tb * background[c0 ...] (the
+   background only when use_bg), summed in float in entry order RV vectors at a time; written with
+   VSTREAM when stream. features hold the rows [row0, row0 + n_rows) of a table (a row part of a
+   table larger than one buffer; the whole table is row0 0, n_rows N): ids outside them are
+   skipped. accumulate adds the part to what earlier parts wrote. */
 static inline void blend_entries(__global const int *ids, __global const float *w, const int n,
-                                 __global const ROW_T *features, const int n_rows, const int cstride, const int c0,
-                                 const float tb, __global const float *background, const int use_bg,
+                                 __global const ROW_T *features, const int row0, const int n_rows,
+                                 const int cstride, const int c0, const float tb,
+                                 __global const float *background, const int use_bg, const int accumulate,
                                  const int stream, __global float *out) {
     for (int v0 = 0; v0 < NV; v0 += RV) {
         const int c = c0 + v0 * VW;
         vec_t acc[RV];
         #pragma unroll
-        for (int v = 0; v < RV; v++) acc[v] = (vec_t)(0.f);
+        for (int v = 0; v < RV; v++) acc[v] = accumulate ? VLOAD(v, out + c) : (vec_t)(0.f);
         for (int j = 0; j < n; j++) {
-            if ((uint)ids[j] >= (uint)n_rows) continue;
+            const uint id = (uint)ids[j] - (uint)row0;     /* wraps below row0: skipped too */
+            if (id >= (uint)n_rows) continue;
             const float wj = w[j];
-            __global const ROW_T *row = features + (size_t)ids[j] * cstride + c;
+            __global const ROW_T *row = features + (size_t)id * cstride + c;
             #pragma unroll
             for (int v = 0; v < RV; v++) acc[v] += wj * RLOAD(v, row);
         }

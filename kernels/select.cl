@@ -21,7 +21,9 @@ static inline void normalize_weights(__global float *w, int n) {
 /* Built with -DBLEND_ROWS (and VW, NV), the K samplers' kernels also blend each ray of a block
    right after selecting it: image row p = blend.cl's blend of the ray's entries (the same
    bytes), read back while they are in cache, so the image is written while the next blocks are
-   selected. BLEND_ARGS are their extra arguments (as blend's), BLEND_LANES(row) the blend. */
+   selected. BLEND_ARGS are their extra arguments (as blend's), BLEND_LANES(row) the blend. The
+   features are the table's first n_rows rows: the whole table, or the first of its row parts
+   (blend.cl adds the others). */
 #ifdef BLEND_ROWS
 #define BLEND_ARGS , __global const ROW_T *features, const int n_rows, const int cstride, \
     __global const float *background, const int use_bg, const int stream, __global float *image
@@ -38,8 +40,8 @@ static inline void blend_lanes(lanei row, int K, __global const int *ids, __glob
         if (p < 0) continue;
         const size_t first = (size_t)p * K;
         for (int c0 = 0; c0 < cstride; c0 += NV * VW)
-            blend_entries(ids + first, w + first, clamp(count[p], 0, K), features, n_rows, cstride, c0,
-                          use_bg ? t_rem[p] : 0.f, background, use_bg, stream, image + (size_t)p * cstride);
+            blend_entries(ids + first, w + first, clamp(count[p], 0, K), features, 0, n_rows, cstride, c0,
+                          use_bg ? t_rem[p] : 0.f, background, use_bg, 0, stream, image + (size_t)p * cstride);
     }
 }
 #else

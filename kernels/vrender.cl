@@ -5,7 +5,9 @@
    as (id, per-pixel weights) and then blended into each pixel's output row chunk by chunk, RV
    vectors of VW channels per chunk held in registers, in depth order (a pixel's zero weights are skipped, so each
    pixel sums exactly its own contributions). Feature rows have cstride elements (ROW_T: float,
-   or half with -DHALF_ROWS), a multiple of VW * RV. */
+   or half with -DHALF_ROWS), a multiple of VW * RV. A table larger than one device buffer is
+   rendered a row part at a time (as in blend.cl): features hold the rows [row0, row0 + n_rows),
+   other Gaussians are walked but not batched, and a later part (accumulate) adds to the image. */
 #include "common.h"
 
 #define BATCH 32
@@ -48,10 +50,11 @@ static inline void blend_batch(__global float *image, __global const ROW_T *feat
 __kernel void vrender(__global const int2 *ranges,     /* [tiles] [start, end) in ids */
                       __global const int *ids,         /* depth-sorted Gaussian ids per tile */
                       __global const float8 *splats,   /* [N] from project */
-                      __global const ROW_T *features,  /* [N, cstride] */
-                      const int cstride, const int width, const int height, const int tiles_x,
+                      __global const ROW_T *features,  /* [n_rows, cstride] */
+                      const int row0, const int n_rows, const int cstride,
+                      const int width, const int height, const int tiles_x,
                       __global const float *background,  /* [cstride], used when use_bg */
-                      const int use_bg,
+                      const int use_bg, const int accumulate,   /* add to the image (a later part) */
                       const int stream,                /* write the image's rows last with VSTREAM */
                       __global float *image,           /* [H*W, cstride] */
                       __global float *alpha,           /* [H*W] 1 - T */
@@ -62,17 +65,19 @@ __kernel void vrender(__global const int2 *ranges,     /* [tiles] [start, end) i
                                   &px, &py, &row);
     int batch_id[BATCH];
     lanef batch_w[BATCH];
-    int count = 0, init = 1;
+    int count = 0, init = !accumulate;
     lanef depth_sum = (lanef)(0.f);
     VOLUME_WALK(range, px, py, row,
-        batch_id[count] = g;
-        batch_w[count] = w;                            /* w_i = T_i alpha'_i */
         depth_sum += w * s.s6;
-        if (++count == BATCH) {
-            blend_batch(image, features, cstride, batch_id, batch_w, count, row, init, 0, (lanef)(0.f),
-                        background);
-            count = 0;
-            init = 0;
+        if ((uint)g - (uint)row0 < (uint)n_rows) {    /* a Gaussian of this row part */
+            batch_id[count] = g - row0;
+            batch_w[count] = w;                        /* w_i = T_i alpha'_i */
+            if (++count == BATCH) {
+                blend_batch(image, features, cstride, batch_id, batch_w, count, row, init, 0, (lanef)(0.f),
+                            background);
+                count = 0;
+                init = 0;
+            }
         })
     blend_batch(image, features, cstride, batch_id, batch_w, count, row, init, stream,
                 use_bg ? T : (lanef)(0.f), background);

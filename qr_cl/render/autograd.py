@@ -17,9 +17,11 @@ from typing import Callable
 import numpy as np
 import torch
 
-from ..runtime import channel_layout, check_channels, device_rows, host_empty, shared_array, to_device
+from ..runtime import (channel_layout, check_channels, device_empty, device_rows, host_empty, row_parts, shared_array,
+                       to_device)
 from ..stages.binning import RasterPlan
-from ..stages.blend import blend_backward, blend_backward_alpha, blend_forward, rows_to_half, splat_backward
+from ..stages.blend import (blend_backward, blend_backward_alpha, blend_forward, rows_to_half, splat_backward,
+                            weight_grads)
 from ..stages.project import project_backward
 from ..stages.select import Selection
 from ..stages.sh import sh_backward, sh_colors
@@ -60,7 +62,9 @@ class BlendFunction(torch.autograd.Function):
     straight into the memory of the tensor it returns (a pooled host array that no earlier
     output still uses; [P, cstride] with a [P, C] view returned when C < cstride); backward
     likewise reads dImage in place and writes dF straight into the returned gradient. On devices
-    that do not share host memory the same calls copy through pooled device buffers. The
+    that do not share host memory the same calls copy through pooled device buffers. A table (or
+    dF) larger than the device's largest buffer is taken in row parts (:func:`row_parts`), each
+    read in place: the image is the sum of their blends, dF written a part's rows at a time. The
     backward is :func:`blend_backward` (deterministic: a fixed sum order per Gaussian); the
     background gets its gradient sum_p t_rem[p] dImage[p]. The selection gets none. A float16
     table gives a float32 image and a float16 gradient (summed in float32, then rounded).
@@ -80,29 +84,36 @@ class BlendFunction(torch.autograd.Function):
 
 
 def _blend_image(sel: Selection, features: torch.Tensor, background: torch.Tensor | None) -> torch.Tensor:
-    """image [P,C] (:func:`image_dtype`) of a Selection, written in place into a pooled host array."""
+    """image [P,C] (:func:`image_dtype`) of a Selection, written in place into a pooled host array:
+    the blend of each row part of the table added up, the background with the first."""
     rt = sel.plan.runtime
     channels = features.shape[1]
     cstride = channel_layout(channels)[2]
     bg = None if background is None else background.detach().cpu().numpy()
+    table = table_rows(features)
     host, image = _output(sel.n_rays, channels, cstride)
-    with device_rows(rt, table_rows(features), cstride) as rows, shared_array(rt, host, "w") as out:
-        blend_forward(sel, rows, channels, bg, out=out)
+    with shared_array(rt, host, "w") as out:
+        for i, (r0, r1) in enumerate(row_parts(rt, len(table), cstride, table.itemsize)):
+            with device_rows(rt, table[r0:r1], cstride) as rows:
+                blend_forward(sel, rows, channels, None if i else bg, out=out, row0=r0, accumulate=i > 0)
     return image.to(image_dtype(features))
 
 
 def _feature_grad(sel: Selection, grad_image: torch.Tensor, channels: int, dtype: torch.dtype) -> torch.Tensor:
     """dL/dfeatures [N,C] in ``dtype`` (the features') by the deterministic blend_backward, summed
-    in float32; for a float16 table rounded on the device (rows_to_half) into the returned array."""
+    in float32 rows (a row part at a time where they exceed a device buffer); for a float16 table
+    rounded on the device (rows_to_half) into the returned array."""
     rt = sel.plan.runtime
     cstride = channel_layout(channels)[2]
     half = dtype == torch.float16
     host, d = _output(sel.n_gaussians, channels, cstride, np.float16 if half else np.float32)
-    with device_rows(rt, host_rows(grad_image), cstride) as dimage, shared_array(rt, host, "w") as out:
-        if half:
-            rows_to_half(rt, blend_backward(sel, dimage, channels), out)
-        else:
-            blend_backward(sel, dimage, channels, out=out)
+    with device_rows(rt, host_rows(grad_image), cstride) as dimage:
+        for r0, r1 in row_parts(rt, sel.n_gaussians, cstride):
+            with shared_array(rt, host[r0:r1], "w") as out:
+                if half:
+                    rows_to_half(rt, blend_backward(sel, dimage, channels, row0=r0, n_rows=r1 - r0), out)
+                else:
+                    blend_backward(sel, dimage, channels, out=out, row0=r0, n_rows=r1 - r0)
     return d.to(dtype)
 
 
@@ -203,8 +214,9 @@ class RasterFunction(torch.autograd.Function):
 
     Backward (deterministic: every per-Gaussian sum runs over the selection's transpose in a fixed
     order): features and background as :class:`BlendFunction`; means2d, conics and opacities by
-    blend_backward_alpha (dL/dalpha per entry; for volume also through the background weight and
-    alpha = 1 - T) -> splat_backward. ``absgrad``, when given, receives the per-Gaussian sums of
+    weight_grads (dL/dw per entry, from each row part of the table) -> blend_backward_alpha
+    (dL/dalpha per entry; for volume also through the background weight and alpha = 1 - T) ->
+    splat_backward. ``absgrad``, when given, receives the per-Gaussian sums of
     the absolute per-pixel dL/dmean2d [N,2] (gsplat's absgrad) whenever means2d gets a gradient.
     The selection is piecewise constant in the geometry and gets no gradient; for the K samplers
     alpha is returned detached (it is the walk's T, over Gaussians the selection does not keep),
@@ -244,8 +256,8 @@ class RasterFunction(torch.autograd.Function):
 def _splat_grads(sel: Selection, features: torch.Tensor, background: torch.Tensor | None,
                  grad_image: torch.Tensor, grad_alpha: torch.Tensor | None) -> np.ndarray:
     """dL/dsplats [N,8] float32 on the host (d mean2d x, y; d conic A, B, C; d opacity; the sums of
-    |d mean2d x|, |d mean2d y| over the entries) of :class:`RasterFunction`: blend_backward_alpha
-    -> splat_backward."""
+    |d mean2d x|, |d mean2d y| over the entries) of :class:`RasterFunction`: weight_grads of each
+    row part of the table -> blend_backward_alpha -> splat_backward."""
     rt = sel.plan.runtime
     channels = features.shape[1]
     cstride = channel_layout(channels)[2]
@@ -257,10 +269,13 @@ def _splat_grads(sel: Selection, features: torch.Tensor, background: torch.Tenso
         if grad_alpha is not None:
             d_trem -= grad_alpha[:, 0].double()
         d_trem = d_trem.numpy()
-    with device_rows(rt, table_rows(features), cstride) as rows, \
-            device_rows(rt, host_rows(grad_image), cstride) as dimage:
-        d_alpha = blend_backward_alpha(sel, rows, dimage, channels, d_trem)
-    return splat_backward(sel, d_alpha).get()
+    table = table_rows(features)
+    d_w = device_empty(rt, sel.ids.shape, np.float32)
+    with device_rows(rt, host_rows(grad_image), cstride) as dimage:
+        for r0, r1 in row_parts(rt, len(table), cstride, table.itemsize):
+            with device_rows(rt, table[r0:r1], cstride) as rows:
+                weight_grads(sel, rows, dimage, channels, row0=r0, out=d_w)
+    return splat_backward(sel, blend_backward_alpha(sel, d_w, d_trem)).get()
 
 
 class SHColours(torch.autograd.Function):

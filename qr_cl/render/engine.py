@@ -5,7 +5,8 @@ gradients w.r.t. the features, the background and the Gaussians (through gsplat'
 :func:`qr_cl.rasterize` and :func:`qr_cl.rasterization` are adapters of their argument conventions
 over :func:`render_view`; both therefore check inputs the same way (:func:`gaussian_tensors`),
 colour from SH by the same kernel (:func:`sh_colours`), and split renders that exceed the
-device's largest buffer into sets of rays and groups of channels the same way.
+device's largest buffer into sets of rays the same way (feature tables larger than a buffer are
+taken in row parts by the blend itself: :mod:`qr_cl.render.autograd`).
 """
 from __future__ import annotations
 
@@ -14,10 +15,10 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ..runtime import BufferLimitError, Runtime, channel_layout, check_buffer, check_channels, trim_device_pool
+from ..runtime import BufferLimitError, Runtime, channel_layout, check_channels, trim_device_pool
 from ..stages.binning import RasterPlan
 from ..stages.select import Selection, entry_bytes, select
-from .autograd import AbsGradSink, ProjectFunction, RasterFunction, SHColours, View, host_rows, table_rows
+from .autograd import AbsGradSink, ProjectFunction, RasterFunction, SHColours, View, host_rows
 from .cache import SelectionCache, selection_key
 from .plan import rasterize_plan
 from .selfcheck import checked_runtime
@@ -89,19 +90,6 @@ def sh_colours(sh, means: torch.Tensor, viewmat: np.ndarray | torch.Tensor, sh_d
     return SHColours.apply(means, sh[:, :need], camera_centre(viewmat))
 
 
-def channel_groups(rt: Runtime, n: int, channels: int, itemsize: int = 4) -> list[slice]:
-    """Feature columns rendered together: all ``channels`` when their [n, cstride] device rows of
-    ``itemsize`` bytes fit in one buffer of the device, else groups of a multiple of 16 channels
-    that do (channels are blended independently, so the image is the same). BufferLimitError if
-    16 do not fit."""
-    if itemsize * n * channel_layout(channels)[2] <= rt.max_buffer_bytes:
-        return [slice(0, channels)]
-    per = rt.max_buffer_bytes // (itemsize * n) // 16 * 16
-    if per < 16:
-        check_buffer(rt, itemsize * n * 16, f"features of {n} Gaussians x 16 channels (the smallest group)")
-    return [slice(c, min(c + per, channels)) for c in range(0, channels, per)]
-
-
 def image_pixels(width: int, height: int) -> np.ndarray:
     """Every pixel (x, y) of a width x height image, row-major: [H*W, 2] int32."""
     ys, xs = np.mgrid[0:height, 0:width]
@@ -163,13 +151,6 @@ def project_view(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
     return (plans, *ProjectFunction.apply(means, quats, scales, view_t, plans, views))
 
 
-def _group_itemsize(table: torch.Tensor) -> int:
-    """Bytes per element that a channel group of ``table`` must fit in one device buffer: the
-    table's own, or 4 where a gradient is wanted (the feature gradient is summed in float32 rows,
-    also for a float16 table)."""
-    return 4 if _grad_wanted(table) else table_rows(table).itemsize
-
-
 def _grad_wanted(*tensors: torch.Tensor | None) -> bool:
     """Whether autograd records and one of the tensors (None: absent) requires a gradient."""
     return torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in tensors)
@@ -181,8 +162,9 @@ def render_view(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, 
                 splats: Splats2D | None = None, absgrad: AbsGradSink | None = None,
                 extra: torch.Tensor | None = None) -> Render:
     """Render features [N,C] of the Gaussians (from :func:`gaussian_tensors`, unit quats) for
-    ``view``: plan, then per set of rays (:func:`ray_sets`) select and, per group of channels
-    (:func:`channel_groups`), blend through :class:`~qr_cl.render.autograd.RasterFunction`, so
+    ``view``: plan, then per set of rays (:func:`ray_sets`) select and blend through
+    :class:`~qr_cl.render.autograd.RasterFunction` (in row parts where the table exceeds a device
+    buffer), so
     gradients reach features, background, Gaussians and ``viewmat`` (a [4,4] tensor with
     view.viewmat's values, or None: no camera gradient). ``cache`` reuses the selections of the
     same geometry, camera, sampler, K and rays.
@@ -225,10 +207,8 @@ def render_view(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, 
             made.append(Splats2D(plan, means2d, conics, opacities))
         return made[0]
 
-    tables = [(features, background, channel_groups(rt, n, channels, _group_itemsize(features)))]
-    if extra is not None:
-        tables.append((extra, None, channel_groups(rt, n, extra.shape[1], _group_itemsize(extra))))
-    cstride = max(channel_layout(groups[0].stop - groups[0].start)[2] for _, _, groups in tables)
+    tables = [(features, background)] + ([] if extra is None else [(extra, None)])
+    cstride = max(channel_layout(table.shape[1])[2] for table, _ in tables)
     parts: list[tuple[Selection, list[torch.Tensor], torch.Tensor]] = []
     for rays in ray_sets(rt, view.width, view.height, view.pixels, view.k, cstride):
         parts += _render_rays(selection, splats_of, rays, view, tables, absgrad)
@@ -242,8 +222,8 @@ def render_view(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, 
 def _render_rays(selection, splats_of, rays: np.ndarray | None, view: View, tables: list[tuple],
                  absgrad: AbsGradSink | None) -> list[tuple]:
     """(Selection, [image [P,C] of each feature table], alpha [P,1]) of the rays ``rays`` (None =
-    the whole image), tables being (features [N,C], background [C] or None, channel groups): one
-    entry, or several when a selection does not fit in a device buffer and the rays are halved."""
+    the whole image), tables being (features [N,C], background [C] or None): one entry, or several
+    when a selection does not fit in a device buffer and the rays are halved."""
     try:
         sel = selection(rays)
     except BufferLimitError:
@@ -255,10 +235,8 @@ def _render_rays(selection, splats_of, rays: np.ndarray | None, view: View, tabl
                 + _render_rays(selection, splats_of, rays[half:], view, tables, absgrad))
     try:
         s2d = splats_of(sel.plan)
-        outs = [[RasterFunction.apply(s2d.means2d, s2d.conics, s2d.opacities, features[:, g],
-                                      None if background is None else background[g], sel, absgrad) for g in groups]
-                for features, background, groups in tables]
+        outs = [RasterFunction.apply(s2d.means2d, s2d.conics, s2d.opacities, features, background, sel, absgrad)
+                for features, background in tables]
     finally:
         sel.ready()                          # made even if no blend ran (it may be cached)
-    images = [out[0][0] if len(out) == 1 else torch.cat([o[0] for o in out], 1) for out in outs]
-    return [(sel, images, outs[0][0][1])]
+    return [(sel, [image for image, _ in outs], outs[0][1])]

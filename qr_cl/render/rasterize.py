@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..runtime import channel_layout, check_buffer, device_rows, host_empty, trim_device_pool
+from ..runtime import channel_layout, check_buffer, device_rows, host_empty, row_parts, trim_device_pool
 from ..stages.binning import RenderMeta
 from ..stages.select import check_pixels, check_sampler
 from ..stages.vrender import render_fused
@@ -93,9 +93,10 @@ def rasterize(means, quats, scales, opacities, features, viewmat, K, width: int,
         [tiles,2], flatten_ids, n_keys and (for N >= 1) the ``selection`` used (:class:`qr_cl.stages.select.Selection`; a list of them,
         one per set of rays, when the render was split to fit the device's buffers).
 
-        Renders larger than the device's largest buffer are split into sets of rays and groups
-        of channels (the same image); features whose 16 channels alone do not fit, or a render
-        that still does not fit, raise :class:`qr_cl.runtime.BufferLimitError` naming the sizes; a
+        Renders larger than the device's largest buffer are split into sets of rays (the same
+        image) and feature tables into row parts, each read in place (the same image to float
+        rounding: the parts' blends are added); a render that still does not fit raises
+        :class:`qr_cl.runtime.BufferLimitError` naming the sizes; a
         render whose host memory the system does not have available raises
         :class:`qr_cl.runtime.HostMemoryError`, also naming them.
 
@@ -137,7 +138,8 @@ def render_volume_fused(means, quats, scales, opacities, features, viewmat, K, w
     Arguments as :func:`rasterize`. Returns image [H,W,C], alpha [H,W,1] (1 - T) and a meta mapping
     (as :func:`rasterize`'s) with the plan's keys (means2d, conics, depths, radii, opacities,
     tile_ranges, flatten_ids, n_keys) and ``depth`` [H,W,1], the expected depth (camera z; 0
-    where nothing was hit).
+    where nothing was hit). A feature table larger than the device's largest buffer is rendered a
+    row part at a time (a walk per part, their blends added: the same image to float rounding).
     """
     gaussians = gaussian_tensors(means, quats, scales, opacities)
     viewmat, K = camera(viewmat, K)
@@ -153,8 +155,10 @@ def render_volume_fused(means, quats, scales, opacities, features, viewmat, K, w
     cstride = channel_layout(channels)[2]
     check_buffer(plan.runtime, 4 * height * width * cstride, f"the fused V-Render image of {width}x{height} "
                  f"px x {cstride} channels (rasterize(..., sampler='volume') renders it in chunks)")
-    with device_rows(plan.runtime, table_rows(feats), cstride) as rows:
-        image, alpha, depth = render_fused(plan, rows, channels, None if bg is None else bg.numpy(),
-                                           out=host_empty((height, width, cstride)))
+    table, out = table_rows(feats), host_empty((height, width, cstride))
+    for i, (r0, r1) in enumerate(row_parts(plan.runtime, len(table), cstride, table.itemsize)):
+        with device_rows(plan.runtime, table[r0:r1], cstride) as rows:   # a table beyond a buffer: row parts
+            image, alpha, depth = render_fused(plan, rows, channels, None if i or bg is None else bg.numpy(), out=out,
+                                               row0=r0, accumulate=i > 0)
     trim_device_pool(plan.runtime)
     return torch.from_numpy(image), torch.from_numpy(alpha), RenderMeta(plan, depth=depth)

@@ -13,8 +13,8 @@ allocates (and page-faults) nothing:
   back to the pool when its array is garbage collected; the in-order queue orders its next use
   after every command enqueued on the old one. :func:`trim_device_pool` bounds what it holds.
 * host memory the kernels read or write: :func:`shared_array` (any C-contiguous array; ``"r"``
-  read-only, ``"w"`` written, ``"rw"``), :func:`device_rows` (feature rows, padded to cstride
-  only when they have to be) and :func:`host_output` (a buffer written into a host array). On a
+  read-only, ``"w"`` written, ``"rw"``) and :func:`device_rows` (feature rows, padded to cstride
+  only when they have to be; a table too large for one buffer in :func:`row_parts`). On a
   device that shares host memory (``rt.host_unified``: CPU devices) they wrap the host array in a
   USE_HOST_PTR buffer (no copy); elsewhere they copy through a pooled device array.
 * large host outputs: :func:`host_empty` takes arrays from the process-wide :class:`HostPool`,
@@ -245,25 +245,14 @@ def shared_array(rt: Runtime, host: np.ndarray, access: str = "rw") -> Iterator[
 
 
 @contextmanager
-def host_output(rt: Runtime, array: np.ndarray):
-    """A device buffer that the kernels write straight into ``array`` (C-contiguous host memory):
-    :func:`shared_array` with access ``"w"``, yielding its buffer (for ``rt.launch``).
-
-    Zero-copy on devices that share host memory; elsewhere a pooled device buffer copied into
-    ``array`` on leaving the block. Avoids allocating and copying a second [H*W, C] image.
-    """
-    with shared_array(rt, array, "w") as dev:
-        yield dev.data
-
-
-@contextmanager
 def device_rows(rt: Runtime, rows: np.ndarray, cstride: int) -> Iterator[cla.Array]:
     """Rows [R, C] (C <= cstride; a numpy array, e.g. ``tensor.detach().numpy()``) as read-only
     [R, cstride] device rows for the block, float16 for float16 rows (a half feature table, see
     ``HALF_ROWS`` in kernels/common.h), float32 for any other dtype; copied only when they have to be.
 
     C-contiguous rows of that dtype with C == cstride are used in place (zero-copy on devices
-    sharing host memory, one copy into a pooled device array elsewhere); other rows are first
+    sharing host memory, at any address on PoCL; one copy into a pooled device array elsewhere),
+    and so is a row range ``table[r0:r1]`` of such a table (a row part); other rows are first
     converted and padded with zero columns into a pooled host array (:func:`host_empty`). The
     kernels must not write to them.
     """
@@ -279,6 +268,21 @@ def device_rows(rt: Runtime, rows: np.ndarray, cstride: int) -> Iterator[cla.Arr
         rows = padded
     with shared_array(rt, rows, "r") as dev:
         yield dev
+
+
+def row_parts(rt: Runtime, n: int, cstride: int, itemsize: int = 4) -> list[tuple[int, int]]:
+    """The row ranges [r0, r1) in which the kernels take a table of ``n`` rows of ``cstride``
+    elements of ``itemsize`` bytes: ``[(0, n)]`` when it fits in one buffer of ``rt``'s device,
+    else the fewest ranges of about equal rows that each fit (a contiguous row range of a
+    C-contiguous table is read in place, see :func:`device_rows`; the kernels skip the ids outside
+    it). BufferLimitError if one row does not fit."""
+    row_bytes = itemsize * cstride
+    if n * row_bytes <= rt.max_buffer_bytes:
+        return [(0, n)]
+    check_buffer(rt, row_bytes, f"a row of {cstride} channels ({np.dtype(f'f{itemsize}')})")
+    parts = -(-n // (rt.max_buffer_bytes // row_bytes))
+    step = -(-n // parts)
+    return [(r, min(r + step, n)) for r in range(0, n, step)]
 
 
 # ----------------------------------------------------------------------------------------------

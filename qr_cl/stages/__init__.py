@@ -4,7 +4,7 @@ backward: a scatter, or a gather over the selection's transpose); vrender is the
 of a whole image."""
 from .binning import RasterPlan, bin_and_sort, host_sort, radix_sorter, sort_pairs
 from .blend import (blend_backward, blend_backward_alpha, blend_forward, prepare_backward, scatters, splat_backward,
-                    work_groups)
+                    weight_grads, work_groups)
 from .project import project, tile_grid
 from .select import Selection, check_pixels, check_sampler, select
 from .sh import sh_colors
@@ -14,4 +14,4 @@ from .vrender import render_fused
 __all__ = ["RasterPlan", "Selection", "Transpose", "backward_order", "bin_and_sort", "blend_backward",
            "blend_backward_alpha", "blend_forward", "check_pixels", "check_sampler", "host_sort", "prepare_backward",
            "project", "radix_sorter", "render_fused", "scatters", "select", "sh_colors", "sort_pairs",
-           "splat_backward", "tile_grid", "transpose", "work_groups"]
+           "splat_backward", "tile_grid", "transpose", "weight_grads", "work_groups"]

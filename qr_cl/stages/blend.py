@@ -5,6 +5,12 @@ Features and images are device rows of ``cstride`` floats (:func:`qr_cl.runtime.
 Both functions write into ``out`` when given one (e.g. a :func:`qr_cl.runtime.shared_array` over
 a host array: the result then lands in host memory without a copy on CPU devices), else into a
 device array from the runtime's pool.
+
+A table larger than one device buffer is taken in row parts (:func:`qr_cl.runtime.row_parts`):
+the functions that read or write table rows take the part's first row ``row0`` and its rows;
+the image is the sum of the parts' blends (``accumulate``), the feature gradient of a part is its
+rows of dF, and the geometry backward sums dL/dw of every part's entries (:func:`weight_grads`)
+before :func:`blend_backward_alpha`.
 """
 from __future__ import annotations
 
@@ -27,6 +33,13 @@ def _check_rows(array: cla.Array, rows: int, cstride: int, name: str, half: bool
                          f"on the device, got {array.dtype} {array.shape}")
 
 
+def _check_part(sel: Selection, row0: int, n_rows: int, name: str) -> None:
+    """ValueError unless the rows [row0, row0 + n_rows) lie within the selection's Gaussians."""
+    if row0 < 0 or n_rows < 0 or row0 + n_rows > sel.n_gaussians:
+        raise ValueError(f"{name} must be rows of the {sel.n_gaussians} Gaussians, got rows [{row0}, "
+                         f"{row0 + n_rows})")
+
+
 def row_defines(features: cla.Array) -> dict:
     """The build defines of a kernel that reads the feature table ``features``: ``HALF_ROWS``
     for a float16 table (read as half, blended in float: kernels/common.h), none for float32."""
@@ -44,31 +57,39 @@ def work_groups(rt: Runtime, rows: int, n_chunks: int) -> tuple[int, tuple[int, 
 
 
 def blend_forward(sel: Selection, features: cla.Array, channels: int,
-                  background: np.ndarray | None = None, out: cla.Array | None = None) -> cla.Array:
+                  background: np.ndarray | None = None, out: cla.Array | None = None, row0: int = 0,
+                  accumulate: bool = False) -> cla.Array:
     """image [P, cstride] = sum_j w[p,j] features[id[p,j]] (+ t_rem[p] * background).
 
-    features: float32 or float16 [N, cstride] device rows (cstride from channel_layout(channels);
-    a float16 table is read as half and blended in float32);
+    features: float32 or float16 [R, cstride] device rows (cstride from channel_layout(channels);
+    a float16 table is read as half and blended in float32): the table's rows [row0, row0 + R),
+    all N of them or a row part (entries of other Gaussians are skipped);
     background: [channels] or None (no background term); out: an optional float32 [P, cstride]
-    device array to write into (else one from the runtime's memory pool).
+    device array to write into (else one from the runtime's memory pool); ``accumulate``: add the
+    blend to ``out`` (the parts after the first).
     Rays as in the Selection; for the full image row p = y * width + x. A deferred selection
-    (``select(..., defer=True)``) is made here by its kernel with this blend fused in.
+    (``select(..., defer=True)``) is made here by its kernel with this blend fused in (the first
+    part: row0 0, not accumulated; else it is made alone first).
     """
     rt = sel.plan.runtime
     vw, nv, cstride = channel_layout(channels, rt.gpu_shaped)
-    _check_rows(features, sel.n_gaussians, cstride, "features", half=True)
+    _check_part(sel, row0, features.shape[0], "features")
+    _check_rows(features, features.shape[0], cstride, "features", half=True)
     check_buffer(rt, 4 * sel.n_rays * cstride, f"the image of {sel.n_rays} rays x {cstride} channels")
+    if accumulate and out is None:
+        raise ValueError("blend_forward(accumulate=True) adds to an image: pass it as out")
     image = device_empty(rt, (sel.n_rays, cstride), np.float32) if out is None else out
     _check_rows(image, sel.n_rays, cstride, "out")
     if sel.n_rays == 0:
         return image
     bg = dict(background=to_device(rt, padded_vector(background, channels, cstride)),
               use_bg=background is not None, stream=streamed(image.nbytes))
-    if sel.pending is not None:
+    if sel.pending is not None and row0 == 0 and not accumulate:
         launch, sel.pending = sel.pending, None
         launch(defines={"VW": vw, "NV": nv, "BLEND_ROWS": 1, **row_defines(features)}, features=features,
-               n_rows=sel.n_gaussians, cstride=cstride, image=image, **bg)
+               n_rows=features.shape[0], cstride=cstride, image=image, **bg)
         return image
+    sel.ready()
     size, full = sel.launch()
     plan = sel.plan
     n_chunks = cstride // (vw * nv)
@@ -77,44 +98,51 @@ def blend_forward(sel: Selection, features: cla.Array, channels: int,
     size, local = work_groups(rt, size, n_chunks)
     rt.launch("blend", (size, n_chunks), defines={"VW": vw, "NV": nv, **row_defines(features)}, local_size=local,
               offsets=sel.offsets, count=sel.count, n_entries=sel.ids.size, sel_ids=sel.ids, sel_w=sel.weights,
-              features=features, n=sel.n_gaussians, cstride=cstride, full=full, n_rays=sel.n_rays, width=plan.width,
-              height=plan.height, tiles_x=plan.tiles_x, t_rem=sel.t_rem, image=image, **bg)
+              features=features, row0=row0, n_rows=features.shape[0], cstride=cstride, full=full, n_rays=sel.n_rays,
+              width=plan.width, height=plan.height, tiles_x=plan.tiles_x, t_rem=sel.t_rem, accumulate=accumulate,
+              image=image, **bg)
     return image
 
 
-def blend_backward(sel: Selection, dimage: cla.Array, channels: int, out: cla.Array | None = None) -> cla.Array:
-    """dF [N, cstride] with dF[g] = sum over entries (p, j) with id[p,j] = g of w[p,j] dimage[p].
+def blend_backward(sel: Selection, dimage: cla.Array, channels: int, out: cla.Array | None = None,
+                   row0: int = 0, n_rows: int | None = None) -> cla.Array:
+    """dF [R, cstride] with dF[g - row0] = sum over entries (p, j) with id[p,j] = g of w[p,j]
+    dimage[p], for the Gaussians g of the rows [row0, row0 + R) (R = ``n_rows``; None: to N).
 
     dimage: float32 [P, cstride] device rows (the gradient of blend_forward's image); out: an
-    optional float32 [N, cstride] device array to write into (else one from the runtime's pool).
+    optional float32 [R, cstride] device array to write into (else one from the runtime's pool).
     Each Gaussian's entries are summed by ray, then by position in the ray, so repeated calls
-    return identical bytes, on either kernel (:func:`scatters` says which): a scatter by
-    OWNERS_PER_CORE work-items per compute unit, each owning a range of Gaussians (no transpose),
-    or a gather over :func:`qr_cl.stages.transpose.transpose`.
+    return identical bytes, for any row part, on either kernel (:func:`scatters` says which): a
+    scatter by OWNERS_PER_CORE work-items per compute unit, each owning a range of the part's
+    Gaussians (no transpose), or a gather over :func:`qr_cl.stages.transpose.transpose`.
     """
     rt = sel.plan.runtime
     vw, nv, cstride = channel_layout(channels, rt.gpu_shaped)
+    n_rows = sel.n_gaussians - row0 if n_rows is None else n_rows
+    _check_part(sel, row0, n_rows, "dF")
     _check_rows(dimage, sel.n_rays, cstride, "dimage")
-    check_buffer(rt, 4 * sel.n_gaussians * cstride, f"dF of {sel.n_gaussians} Gaussians x {cstride} channels")
-    dfeatures = device_empty(rt, (sel.n_gaussians, cstride), np.float32) if out is None else out
-    _check_rows(dfeatures, sel.n_gaussians, cstride, "out")
+    check_buffer(rt, 4 * n_rows * cstride, f"dF of {n_rows} Gaussians x {cstride} channels")
+    dfeatures = device_empty(rt, (n_rows, cstride), np.float32) if out is None else out
+    _check_rows(dfeatures, n_rows, cstride, "out")
     if scatters(sel):
         n_owners = OWNERS_PER_CORE * rt.device.max_compute_units
-        if n_owners not in sel.owners:
-            sel.owners[n_owners] = to_device(rt, owner_bounds(sel, n_owners), np.int32)
-        bounds = sel.owners[n_owners]
+        key = (n_owners, row0, n_rows)
+        if key not in sel.owners:
+            sel.owners[key] = to_device(rt, owner_bounds(sel, n_owners, row0, row0 + n_rows), np.int32)
+        bounds = sel.owners[key]
         rt.launch("blend_backward_scatter", bounds.size - 1, defines={"VW": vw, "NV": nv}, local_size=(1,),
                   n_owners=bounds.size - 1, bounds=bounds, n_rays=sel.n_rays,
                   offsets=sel.offsets, count=sel.count, n_entries=sel.ids.size, sel_ids=sel.ids,
-                  sel_w=sel.weights, dimage=dimage, cstride=cstride, touched=device_zeros(rt, max(sel.n_gaussians, 1), np.uint8),
-                  dfeatures=dfeatures)
+                  sel_w=sel.weights, dimage=dimage, cstride=cstride, row0=row0,
+                  touched=device_zeros(rt, max(n_rows, 1), np.uint8), dfeatures=dfeatures)
         return dfeatures
     t = transpose(sel)
     n_chunks = cstride // (vw * nv)
-    size, local = work_groups(rt, sel.n_gaussians, n_chunks)
+    size, local = work_groups(rt, n_rows, n_chunks)
     rt.launch("blend_backward", (size, n_chunks), defines={"VW": vw, "NV": nv}, local_size=local,
-              n=sel.n_gaussians, order=backward_order(sel), n_chunks=t.chunks, cursor=t.cursor, t_ray=t.ray,
-              t_w=t.weight, dimage=dimage, n_rays=sel.n_rays, cstride=cstride, dfeatures=dfeatures)
+              n=n_rows, order=backward_order(sel, row0, row0 + n_rows), n_chunks=t.chunks, cursor=t.cursor,
+              t_ray=t.ray, t_w=t.weight, dimage=dimage, n_rays=sel.n_rays, cstride=cstride, row0=row0,
+              dfeatures=dfeatures)
     return dfeatures
 
 
@@ -130,12 +158,13 @@ def rows_to_half(rt: Runtime, rows: cla.Array, out: cla.Array) -> cla.Array:
     return out
 
 
-def owner_bounds(sel: Selection, owners: int) -> np.ndarray:
-    """Cuts [owners + 1] int32 of the Gaussians 0..N into ranges holding about equal numbers of
-    ``sel``'s entries (the backward scatter's work-items; from a device histogram of the entries
-    over OWNER_BINS bins of ids by transpose.cl's counting pass, so a cut falls on a bin's edge).
-    Always 0 first and N last."""
+def owner_bounds(sel: Selection, owners: int, g0: int = 0, g1: int | None = None) -> np.ndarray:
+    """Cuts [owners + 1] int32 of the Gaussians g0..g1 (default 0..N) into ranges holding about
+    equal numbers of ``sel``'s entries (the backward scatter's work-items; from a device histogram
+    of the entries over OWNER_BINS bins of ids by transpose.cl's counting pass, so a cut falls on a
+    bin's edge or on g0, g1). Always g0 first and g1 last."""
     rt, n = sel.plan.runtime, sel.n_gaussians
+    g1 = n if g1 is None else g1
     shift = max(0, int(np.ceil(np.log2(max(n, 1) / OWNER_BINS))))
     bins = (max(n, 1) - 1 >> shift) + 1
     chunks = max(1, min(sel.n_rays, owners))
@@ -145,8 +174,10 @@ def owner_bounds(sel: Selection, owners: int) -> np.ndarray:
                   n_chunks=chunks, bin_shift=shift, offsets=sel.offsets, count=sel.count, n_entries=sel.ids.size,
                   n=n, sel_ids=sel.ids, hist=hist)
     cum = np.cumsum(hist.get().reshape(bins, chunks).sum(1))
-    cuts = np.searchsorted(cum, cum[-1] * np.arange(1, owners) / owners, side="right")
-    return np.concatenate([[0], np.minimum(cuts << shift, n), [n]]).astype(np.int32)
+    first = cum[(g0 >> shift) - 1] if g0 >> shift else 0          # the entries before g0's bin
+    last = cum[max(g1 - 1, 0) >> shift]                               # ... up to g1's
+    cuts = np.searchsorted(cum, first + (last - first) * np.arange(1, owners) / owners, side="right")
+    return np.concatenate([[g0], np.clip(cuts << shift, g0, g1), [g1]]).astype(np.int32)
 
 
 def scatters(sel: Selection) -> bool:
@@ -175,34 +206,51 @@ def _ray_pixels(sel: Selection) -> dict:
     return dict(full=int(sel.pixels is None), width=sel.plan.width, pixels=to_device(rt, pixels, np.int32))
 
 
-def blend_backward_alpha(sel: Selection, features: cla.Array, dimage: cla.Array, channels: int,
-                         d_trem: np.ndarray | None = None) -> cla.Array:
-    """dL/dalpha per selection entry [E] float32 (the layout of ``sel.ids``): the blend's backward
-    w.r.t. the alphas of the selected Gaussians, recomputed from the plan's splats (see
-    ``blend_backward_alpha`` in kernels/blend.cl for the formulas of volume and of the normalized
-    K samplers).
-
-    features: float32 or float16 [N, cstride] device rows the image was blended from; dimage: float32
-    [P, cstride] device rows of dL/dimage; d_trem: [P] dL/d(final transmittance) of each ray
-    (volume only: the background weight and 1 - alpha; None = 0; ignored by the K samplers, whose
-    background weight does not depend on the alphas).
-    """
+def weight_grads(sel: Selection, features: cla.Array, dimage: cla.Array, channels: int, row0: int = 0,
+                 out: cla.Array | None = None) -> cla.Array:
+    """dL/dw per selection entry [E] float32 (the layout of ``sel.ids``): dimage[p] . F[id] of the
+    entries whose Gaussian is among the rows [row0, row0 + R) that ``features`` hold (float32 or
+    float16 [R, cstride] device rows, the whole table or a row part), written into ``out`` (else a
+    pooled array); the other entries of ``out`` are left as they are, for the other parts.
+    dimage: float32 [P, cstride] device rows of dL/dimage. The input of :func:`blend_backward_alpha`."""
     rt = sel.plan.runtime
     vw, _, cstride = channel_layout(channels, rt.gpu_shaped)
-    _check_rows(features, sel.n_gaussians, cstride, "features", half=True)
+    _check_part(sel, row0, features.shape[0], "features")
+    _check_rows(features, features.shape[0], cstride, "features", half=True)
     _check_rows(dimage, sel.n_rays, cstride, "dimage")
-    d_alpha = device_empty(rt, sel.ids.shape, np.float32)
+    d_w = device_empty(rt, sel.ids.shape, np.float32) if out is None else out
+    if d_w.shape != sel.ids.shape or d_w.dtype != np.float32:
+        raise ValueError(f"out must be float32 {sel.ids.shape} (an entry's), got {d_w.dtype} {d_w.shape}")
+    if sel.n_rays:
+        rt.launch("weight_grads", sel.n_rays, defines={"VW": vw, "NV": 1, **row_defines(features)},
+                  n_rays=sel.n_rays, offsets=sel.offsets, count=sel.count, n_entries=sel.ids.size, sel_ids=sel.ids,
+                  features=features, row0=row0, n_rows=features.shape[0], dimage=dimage, cstride=cstride, d_w=d_w)
+    return d_w
+
+
+def blend_backward_alpha(sel: Selection, d_w: cla.Array, d_trem: np.ndarray | None = None) -> cla.Array:
+    """dL/dalpha per selection entry [E] float32 (the layout of ``sel.ids``), computed in place in
+    ``d_w``, which holds dL/dw of every entry on entry (:func:`weight_grads` of every row part of
+    the table): the blend's backward w.r.t. the alphas of the selected Gaussians, recomputed from
+    the plan's splats (see ``blend_backward_alpha`` in kernels/blend.cl for the formulas of volume
+    and of the normalized K samplers).
+
+    d_trem: [P] dL/d(final transmittance) of each ray (volume only: the background weight and
+    1 - alpha; None = 0; ignored by the K samplers, whose background weight does not depend on the
+    alphas).
+    """
+    rt = sel.plan.runtime
+    if d_w.shape != sel.ids.shape or d_w.dtype != np.float32:
+        raise ValueError(f"d_w must be float32 {sel.ids.shape} (an entry's), got {d_w.dtype} {d_w.shape}")
     if sel.n_rays == 0:
-        return d_alpha
+        return d_w
     d_trem = np.zeros(sel.n_rays, np.float32) if d_trem is None else np.asarray(d_trem, np.float32)
-    rt.launch("blend_backward_alpha", sel.n_rays, defines={"VW": vw, "NV": 1, **row_defines(features)},
-              n_rays=sel.n_rays,
+    # blend_backward_alpha reads no feature rows; blend.cl is built with some row vector width all the same
+    rt.launch("blend_backward_alpha", sel.n_rays, defines={"VW": 1, "NV": 1}, n_rays=sel.n_rays,
               **_ray_pixels(sel), offsets=sel.offsets, count=sel.count, n_entries=sel.ids.size,
-              n=sel.n_gaussians, sel_ids=sel.ids, sel_w=sel.weights,
-              splats=sel.plan.splats, features=features, dimage=dimage, cstride=cstride,
-              normalized=int(sel.sampler != "volume"), d_trem=to_device(rt, d_trem, np.float32),
-              d_alpha=d_alpha)
-    return d_alpha
+              n=sel.n_gaussians, sel_ids=sel.ids, sel_w=sel.weights, splats=sel.plan.splats,
+              normalized=int(sel.sampler != "volume"), d_trem=to_device(rt, d_trem, np.float32), d_alpha=d_w)
+    return d_w
 
 
 def splat_backward(sel: Selection, d_alpha: cla.Array) -> cla.Array:

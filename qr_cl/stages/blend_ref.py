@@ -1,5 +1,7 @@
 """Twins of blend.cl (:mod:`qr_cl.stages.blend`), in float64: :func:`blend` (numpy) of a Selection,
-:func:`render_rays` (torch, differentiable in the splats) of its geometry backward."""
+:func:`render_rays` (torch, differentiable in the splats) of its geometry backward. Both take a
+feature table whole (``row0`` 0) or a row part of it, its rows [row0, row0 + R): entries of other
+Gaussians then blend nothing (their alphas still count in the transmittances)."""
 from __future__ import annotations
 
 import numpy as np
@@ -8,12 +10,21 @@ import torch
 from ..runtime import ALPHA_MAX
 
 
+def part_rows(ids: np.ndarray, row0: int, n_rows: int) -> np.ndarray:
+    """The row of each entry's feature in a table part of the rows [row0, row0 + n_rows): id - row0,
+    or n_rows (one past the part: a zero row) for padding and the ids of other parts."""
+    local = np.asarray(ids, np.int64) - row0
+    return np.where((np.asarray(ids) >= 0) & (local >= 0) & (local < n_rows), local, n_rows)
+
+
 def blend(ids: np.ndarray, weights: np.ndarray, features: np.ndarray, t_rem: np.ndarray | None = None,
-          background=None) -> np.ndarray:
-    """image [P,C] = sum_j weights[p,j] features[ids[p,j]] (+ t_rem[p] background), in float64.
-    ids [P,L] (-1 = padding), weights [P,L], features [N,C]."""
+          background=None, row0: int = 0) -> np.ndarray:
+    """image [P,C] = sum_j weights[p,j] features[ids[p,j] - row0] (+ t_rem[p] background), in
+    float64, over the entries whose id is in [row0, row0 + R). ids [P,L] (-1 = padding), weights
+    [P,L], features [R,C] (rows [row0, row0 + R) of the table)."""
     f = np.asarray(features, np.float64)
-    gathered = f[np.maximum(ids, 0)] * np.where(ids >= 0, weights, 0)[..., None]
+    rows = np.concatenate([f, np.zeros((1, f.shape[1]))])[part_rows(ids, row0, len(f))]   # the last: zeros
+    gathered = rows * np.asarray(weights, np.float64)[..., None]
     image = gathered.sum(1) if ids.shape[1] else np.zeros((len(ids), f.shape[1]))
     if background is not None:
         image = image + np.asarray(t_rem, np.float64)[:, None] * np.asarray(background, np.float64)[None]
@@ -22,12 +33,13 @@ def blend(ids: np.ndarray, weights: np.ndarray, features: np.ndarray, t_rem: np.
 
 def render_rays(means2d: torch.Tensor, conics: torch.Tensor, opacities: torch.Tensor, features: torch.Tensor,
                 ids: np.ndarray, pixels: np.ndarray, normalized: bool,
-                background: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                background: torch.Tensor | None = None, row0: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
     """The blend of fixed per-ray Gaussian lists as a differentiable torch function of the splats
     (the reference of blend.cl's geometry backward): ids [P,L] (depth order, -1 = padding), pixels
     [P,2] integer (x, y); means2d [N,2] px (or [P,L,2], each entry's own copy: its gradient is then
     the per-pixel dL/dmean2d that gsplat's absgrad sums in absolute value), conics [N,3] (A, B, C),
-    opacities [N], features [N,C].
+    opacities [N], features [R,C]: the rows [row0, row0 + R) of the table (entries of other
+    Gaussians blend no feature, as in a row part of blend.cl).
 
     alpha = min(ALPHA_MAX, opacity exp(-sigma)) at the pixel centre, w_j = T_j alpha_j
     (T_j = prod_{i<j} (1 - alpha_i)); ``normalized`` (the K samplers): w_j / sum_i w_i, with the
@@ -48,7 +60,9 @@ def render_rays(means2d: torch.Tensor, conics: torch.Tensor, opacities: torch.Te
         t_rem = (~valid.any(1)).to(w.dtype)
     else:
         t_rem = t_final
-    image = (w[..., None] * features[g]).sum(1)
+    rows = torch.cat([features, features.new_zeros(1, features.shape[1])])[
+        torch.as_tensor(part_rows(ids, row0, len(features)), dtype=torch.long)]
+    image = (w[..., None] * rows).sum(1)
     if background is not None:
         image = image + t_rem[:, None] * background
     return image, t_final

@@ -45,7 +45,8 @@ class Selection:
     ``k`` is K (0 for volume); ``n_gaussians`` is N of the plan. ``transposed`` and ``order`` cache
     :func:`qr_cl.stages.transpose.transpose` and its backward order (the blend backward's view of
     the selection); ``owners`` the backward
-    scatter's owner bounds by number of owners (:func:`qr_cl.stages.blend.owner_bounds`).
+    scatter's owner bounds by (number of owners, first row, rows) of a row part
+    (:func:`qr_cl.stages.blend.owner_bounds`).
     ``pending`` is the deferred selection kernel of ``select(..., defer=True)`` until it is
     enqueued: by the first blend forward, fused with it, or by :meth:`ready`.
     """
@@ -63,7 +64,7 @@ class Selection:
     t_rem: cla.Array
     transposed: Transpose | None = field(default=None, repr=False)
     order: cla.Array | None = field(default=None, repr=False)
-    owners: dict[int, cla.Array] = field(default_factory=dict, repr=False)
+    owners: dict[tuple[int, int, int], cla.Array] = field(default_factory=dict, repr=False)
     pending: Callable[..., None] | None = field(default=None, repr=False)
 
     def ready(self) -> Selection:

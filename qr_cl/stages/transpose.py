@@ -46,13 +46,17 @@ def transpose(sel: Selection) -> Transpose:
     return sel.transposed
 
 
-def backward_order(sel: Selection) -> cla.Array:
-    """The Gaussians [N] int32 in the order the blend backward takes them: by the tile, then the
-    ray, of the first ray of their transposed entries (Gaussians without entries last), so that
-    neighbouring work-items gather neighbouring rows of dImage. Made with the transpose, by host
-    work only (a training step's next transpose runs on another thread)."""
+def backward_order(sel: Selection, g0: int = 0, g1: int | None = None) -> cla.Array:
+    """The Gaussians g0..g1 (default all N) int32 in the order the blend backward takes them: by
+    the tile, then the ray, of the first ray of their transposed entries (Gaussians without entries
+    last), so that neighbouring work-items gather neighbouring rows of dImage. Made with the
+    transpose, by host work only (a training step's next transpose runs on another thread); a row
+    part's (g0..g1 not all N) is picked from it on the host."""
     transpose(sel)
-    return sel.order
+    if g0 == 0 and g1 in (None, sel.n_gaussians):
+        return sel.order
+    order = sel.order.get()
+    return to_device(sel.plan.runtime, order[(order >= g0) & (order < g1)], np.int32)
 
 
 def counted_transpose(sel: Selection) -> Transpose:

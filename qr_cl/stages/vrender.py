@@ -6,30 +6,37 @@ from __future__ import annotations
 import numpy as np
 import pyopencl.array as cla
 
-from ..runtime import (BLOCK_GROUP, TILE, channel_layout, check_buffer, device_empty, host_empty, host_output,
-                       padded_vector, streamed, to_device)
+from ..runtime import (BLOCK_GROUP, TILE, channel_layout, check_buffer, device_empty, host_empty, padded_vector,
+                       shared_array, streamed, to_device)
 from .binning import RasterPlan
 from .blend import row_defines
 
 
 def render_fused(plan: RasterPlan, features: cla.Array, channels: int,
-                 background: np.ndarray | None = None,
-                 out: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                 background: np.ndarray | None = None, out: np.ndarray | None = None, row0: int = 0,
+                 accumulate: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Blend every Gaussian V-Render uses (alpha >= 1/255, until T <= 1e-4) in one kernel.
 
-    features [N, cstride] float32 or float16 (read as half, blended in float32) on the device with
-    cstride from :func:`channel_layout` (channels);
+    features [R, cstride] float32 or float16 (read as half, blended in float32) on the device with
+    cstride from :func:`channel_layout` (channels): the table's rows [row0, row0 + R), all N or a
+    row part (the other Gaussians are walked, not blended);
     background [channels] or None. Returns image [H,W,channels], alpha [H,W,1] (1 - T) and
     expected depth [H,W,1] (sum of w_i z_i / (1 - T); 0 where nothing was hit), float32.
     ``out``: an optional C-contiguous float32 [H,W,cstride] host array to render into (reusing one
     avoids the page faults of a fresh large allocation); the image is a view of it ([H,W,C] of
-    [H,W,cstride]), as it is of the pooled host array used without ``out``.
+    [H,W,cstride]), as it is of the pooled host array used without ``out``. ``accumulate``: add the
+    blend to ``out`` (the row parts after the first).
     """
     rt = plan.runtime
     vw, nv, cstride = channel_layout(channels, rt.gpu_shaped)
     if features.shape[-1] != cstride or features.dtype not in (np.float32, np.float16):
         raise ValueError(f"features must be float32 or float16 rows of length {cstride}, got {features.dtype} "
                          f"rows of length {features.shape[-1]}")
+    if row0 < 0 or row0 + features.shape[0] > plan.n_gaussians:
+        raise ValueError(f"features must be rows of the {plan.n_gaussians} Gaussians, got rows "
+                         f"[{row0}, {row0 + features.shape[0]})")
+    if accumulate and out is None:
+        raise ValueError("render_fused(accumulate=True) adds to an image: pass it as out")
     h, w = plan.height, plan.width
     check_buffer(rt, 4 * h * w * cstride, f"the fused V-Render image of {w}x{h} px x {cstride} channels "
                  "(rasterize(..., sampler='volume') renders it in chunks)")
@@ -37,12 +44,12 @@ def render_fused(plan: RasterPlan, features: cla.Array, channels: int,
     if image.shape != (h, w, cstride) or image.dtype != np.float32 or not image.flags.c_contiguous:
         raise ValueError(f"out must be a C-contiguous float32 array of shape {(h, w, cstride)}")
     alpha, depth = device_empty(rt, h * w), device_empty(rt, h * w)
-    with host_output(rt, image) as image_buf:
+    with shared_array(rt, image, "rw" if accumulate else "w") as image_dev:
         rt.launch("vrender", plan.tiles_x * plan.tiles_y * TILE, defines={"VW": vw, "NV": nv, **row_defines(features)},
                   local_size=BLOCK_GROUP, ranges=plan.ranges, ids=plan.ids, splats=plan.splats, features=features,
-                  cstride=cstride, width=w, height=h, tiles_x=plan.tiles_x,
+                  row0=row0, n_rows=features.shape[0], cstride=cstride, width=w, height=h, tiles_x=plan.tiles_x,
                   background=to_device(rt, padded_vector(background, channels, cstride)),
-                  use_bg=background is not None, stream=streamed(image.nbytes),
-                  image=image_buf, alpha=alpha, depth=depth)
+                  use_bg=background is not None, accumulate=accumulate, stream=streamed(image.nbytes),
+                  image=image_dev, alpha=alpha, depth=depth)
     return (image[:, :, :channels], alpha.get(ary=host_empty(h * w)).reshape(h, w, 1),
             depth.get(ary=host_empty(h * w)).reshape(h, w, 1))

@@ -6,6 +6,7 @@ import numpy as np
 
 from ..runtime import T_MIN
 from .binning_ref import bin_and_sort, tile_pixels
+from .blend_ref import part_rows
 from .project_ref import project
 from .select_ref import alphas
 
@@ -27,11 +28,13 @@ def volume_weights(alpha: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def vrender(proj: dict, ranges: np.ndarray, ids: np.ndarray, features: np.ndarray, width: int,
-            height: int, background=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Full alpha blending (vrender.cl). features [N,C]. Returns image [H,W,C], alpha [H,W,1],
-    expected depth [H,W,1]."""
+            height: int, background=None, row0: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Full alpha blending (vrender.cl). features [R,C]: the rows [row0, row0 + R) of the table
+    (all N, or a row part: other Gaussians blend no feature). Returns image [H,W,C], alpha
+    [H,W,1], expected depth [H,W,1]."""
     features = np.asarray(features, np.float32)
     C = features.shape[1]
+    padded = np.concatenate([features, np.zeros((1, C), np.float32)])     # the last row: other parts
     image = np.zeros((height, width, C), np.float32)
     alpha_img = np.zeros((height, width, 1), np.float32)
     depth_img = np.zeros((height, width, 1), np.float32)
@@ -40,7 +43,7 @@ def vrender(proj: dict, ranges: np.ndarray, ids: np.ndarray, features: np.ndarra
         pix = tile_pixels(tile, width, height)
         tile_ids = ids[start:end]
         w, t_final = volume_weights(alphas(proj, tile_ids, pix))
-        image[pix[:, 1], pix[:, 0]] = w @ features[tile_ids] + t_final[:, None] * bg
+        image[pix[:, 1], pix[:, 0]] = w @ padded[part_rows(tile_ids, row0, len(features))] + t_final[:, None] * bg
         alpha_img[pix[:, 1], pix[:, 0], 0] = 1 - t_final
         wsum = 1 - t_final
         dsum = w @ proj["depths"][tile_ids].astype(np.float32)

@@ -36,13 +36,15 @@ def child() -> None:
     from qr_cl.runtime import channel_layout, to_device
     from qr_cl.scene import look_at
     from qr_cl.stages import blend as blend_module
-    from qr_cl.stages import blend_backward, blend_backward_alpha, blend_forward, scatters, select, splat_backward
+    from qr_cl.stages import (blend_backward, blend_backward_alpha, blend_forward, scatters, select, splat_backward,
+                              weight_grads)
 
     cam = look_at([0, 0, 0], [0, 0, 1], [0, -1, 0], 30.0, 30.0, W, H)
     plan = rasterize_plan(*scene(), cam.viewmat, cam.K, W, H)
     rt = plan.runtime
     cstride = channel_layout(C, rt.gpu_shaped)[2]
-    features = to_device(rt, np.random.default_rng(0).normal(size=(N, cstride)))
+    rows = np.random.default_rng(0).normal(size=(N, cstride))
+    features, part = to_device(rt, rows), to_device(rt, rows[N // 2:])      # the table, its second row part
     dimage = to_device(rt, np.ones((W * H, cstride)))
     for sampler in ("topk", "volume"):
         sel = select(plan, sampler, 6)
@@ -53,13 +55,16 @@ def child() -> None:
         sel.count.set(count)
         sel.ids.set(ids)
         blend_forward(sel, features, C).get()
+        blend_forward(sel, part, C, row0=N // 2).get()
         for scatter in (True, False):                   # both backward kernels (the gather transposes)
             sel.transposed = sel.order = None
             sel.owners.clear()
             blend_module.scatters = (lambda s, v=scatter: v)
             blend_backward(sel, dimage, C).get()
+            blend_backward(sel, dimage, C, row0=N // 2).get()
         blend_module.scatters = scatters
-        d_alpha = blend_backward_alpha(sel, features, dimage, C)
+        d_w = weight_grads(sel, features, dimage, C)
+        d_alpha = blend_backward_alpha(sel, weight_grads(sel, part, dimage, C, row0=N // 2, out=d_w))
         splat_backward(sel, d_alpha).get()
         print(f"{sampler}: survived")
 

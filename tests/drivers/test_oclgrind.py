@@ -158,6 +158,7 @@ def exercise() -> None:
     qr_cl.render_volume_fused(*geo, wide, cam.viewmat, cam.K, W, H)
     qr_cl.rasterize(*geo, wide, cam.viewmat, cam.K, W, H, sampler="quantile", k=4)
     print("render_volume_fused and rasterize, 544 channels: ok", flush=True)
+    row_parts_exercise(rt, geo, cam, feats, wide, bg, pixels)
 
     for degree in (1, 3):                      # the colour stage and its backward (sh_backward)
         coeffs = torch.from_numpy(sh).requires_grad_(True)
@@ -181,6 +182,44 @@ def exercise() -> None:
     roofline.stream_bandwidth(rt, mib=1, rounds=1)
     print("roofline fma_peak, triad: ok", flush=True)
     rt.queue.finish()
+
+
+def row_parts_exercise(rt, geo, cam, feats, wide, bg, pixels) -> None:
+    """Tables in row parts (the kernels' row0 / n_rows / accumulate): the fused V-Render of two
+    parts of ``feats`` added (against the whole table's), and
+    renders with gradients of a table over a buffer limit of a third of it (three parts; the rays
+    within it), on GPU and CPU shapes."""
+    import numpy as np
+    import torch
+
+    import qr_cl
+    from qr_cl.render import rasterize_plan
+    from qr_cl.runtime import Runtime, channel_layout, host_empty, row_parts, to_device
+    from qr_cl.stages import render_fused
+
+    n, cut = len(feats), len(feats) // 3
+    plan = rasterize_plan(*geo, cam.viewmat, cam.K, W, H)
+    cstride = channel_layout(feats.shape[1], rt.gpu_shaped)[2]
+    rows = np.zeros((n, cstride), np.float32)
+    rows[:, :feats.shape[1]] = feats
+    whole = render_fused(plan, to_device(rt, rows), feats.shape[1], bg)[0].copy()
+    out = host_empty((H, W, cstride))
+    for i, (r0, r1) in enumerate(((0, cut), (cut, n))):
+        image = render_fused(plan, to_device(rt, rows[r0:r1]), feats.shape[1], None if i else bg, out=out, row0=r0,
+                             accumulate=i > 0)[0]
+    assert np.abs(image - whole).max() < 1e-4, "fused V-Render in row parts != the whole table's"
+    limit, Runtime.max_buffer_bytes = Runtime.max_buffer_bytes, property(lambda self: wide.nbytes // 3 + 64)
+    assert len(row_parts(rt, n, channel_layout(wide.shape[1])[2])) == 3
+    gpu_shaped = rt.gpu_shaped
+    for rt.gpu_shaped, sampler in ((gpu_shaped, "volume"), (gpu_shaped, "quantile"), (False, "quantile")):
+        inputs = [torch.from_numpy(a).requires_grad_(True) for a in (*geo, wide)]
+        img, alpha, _ = qr_cl.rasterize(*inputs, cam.viewmat, cam.K, W, H, sampler=sampler, k=4, pixels=pixels,
+                                        background=np.linspace(-1, 1, wide.shape[1]))
+        (img.sum() + alpha.sum()).backward()
+        assert all(bool(torch.isfinite(t.grad).all()) for t in inputs)
+    Runtime.max_buffer_bytes, rt.gpu_shaped = limit, gpu_shaped
+    print("tables in row parts: render_volume_fused, rasterize volume and quantile (GPU and CPU shapes) "
+          "forward+backward: ok", flush=True)
 
 
 def exercise_pyopencl() -> None:

@@ -1,5 +1,6 @@
-"""Renders larger than the device's largest buffer: split into sets of rays and groups of channels
-(the same image), or refused with a message naming the sizes and the limit."""
+"""Renders larger than the device's largest buffer: split into sets of rays (the same image) and
+feature tables into row parts, read in place (the same image to float rounding), or refused with a
+message naming the sizes and the limit."""
 import numpy as np
 import pytest
 import torch
@@ -7,7 +8,9 @@ import torch
 import pyopencl as cl
 
 import qr_cl
-from qr_cl.runtime import BufferLimitError, Runtime
+from qr_cl.render import autograd
+from qr_cl.runtime import BufferLimitError, Runtime, memory, row_parts, runtime
+from tests.conftest import make_random_scene
 
 ALLOCATE = cl.tools.MemoryPool.__call__
 
@@ -43,11 +46,13 @@ def shape(request, monkeypatch):
 def test_split_render_equals_the_whole(random_scene, monkeypatch, sampler, shape):
     n, w, h = len(random_scene[0]), random_scene[6], random_scene[7]
     whole = render(random_scene, 40, sampler)
-    # features fit only 32 channels at a time, an image only ~1/6 of the rays at 32 channels
-    limit_buffers(monkeypatch, 4 * max(n * 32, w * h * 32 // 6))
+    # features fit only 32 of their 48 padded channels' rows at a time (two row parts), an image
+    # only ~1/8 of the rays
+    limit_buffers(monkeypatch, 4 * max(n * 32, w * h * 48 // 8))
     split = render(random_scene, 40, sampler)
-    assert isinstance(split[3], list) and len(split[3]) >= 6      # it really was split
-    assert torch.equal(split[0], whole[0]) and torch.equal(split[1], whole[1])
+    assert isinstance(split[3], list) and len(split[3]) >= 8      # it really was split
+    torch.testing.assert_close(split[0], whole[0], rtol=1e-5, atol=1e-6)   # the parts' blends added
+    assert torch.equal(split[1], whole[1])
     torch.testing.assert_close(split[2], whole[2], rtol=1e-5, atol=1e-6)   # per-set sums added
 
 
@@ -66,9 +71,10 @@ def test_split_pixel_subset_and_volume_entries(random_scene, monkeypatch, shape)
 
 def test_what_cannot_be_split_is_refused_with_sizes(random_scene, monkeypatch):
     m, q, s, o, v, K, w, h = random_scene
-    limit_buffers(monkeypatch, 4 * len(m) * 8)       # not even 16 channels of the features fit
-    with pytest.raises(BufferLimitError, match=r"16 channels .*MiB in one device buffer.*allows .*MAX_MEM_ALLOC"):
-        qr_cl.rasterize(m, q, s, o, np.ones((len(m), 20), np.float32), v, K, w, h)
+    limit_buffers(monkeypatch, 1000)                 # not one row of the features fits
+    with pytest.raises(BufferLimitError, match=r"a row of 512 channels \(float32\) needs .*MiB in one device "
+                                               r"buffer.*allows .*MAX_MEM_ALLOC"):
+        row_parts(runtime(), 10, 512)
     limit_buffers(monkeypatch, 4 * w * h * 4)        # a 16-channel fused image does not fit
     with pytest.raises(BufferLimitError, match=r"fused V-Render image .*rasterize"):
         qr_cl.render_volume_fused(m, q, s, o, np.ones((len(m), 16), np.float32), v, K, w, h)
@@ -126,3 +132,98 @@ def test_available_host_memory_is_read_from_the_system():
     from qr_cl.runtime import memory
     available = memory.available_host_bytes()
     assert available is None or 0 < available < 1 << 50
+
+
+#: A scene whose feature table is larger than a selection of PIXELS rays, so that a limit a third
+#: of the table splits the table alone (each part a contiguous row range of it) and not the rays.
+PART_SCENE, PIXELS, PART_CHANNELS = dict(n=3000, seed=4), 100, 128
+
+
+def part_render(scene, f: torch.Tensor, sampler: str, background: torch.Tensor | None, pixels: np.ndarray):
+    """(image, alpha, [grads of means, quats, scales, opacities, features f, background], selection)."""
+    m, q, s, o, v, K, w, h = scene
+    params = [torch.from_numpy(a).requires_grad_(True) for a in (m, q, s, o)]
+    bg = None if background is None else background.clone().requires_grad_(True)
+    img, alpha, meta = qr_cl.rasterize(*params, f, v, K, w, h, sampler=sampler, k=6, pixels=pixels, background=bg)
+    ((img * torch.linspace(-1, 1, img.numel()).reshape(img.shape)).sum() + alpha.sum()).backward()
+    return img.detach(), alpha.detach(), [p.grad for p in params] + [f.grad, None if bg is None else bg.grad], \
+        meta["selection"]
+
+
+@pytest.mark.parametrize("sampler", ["volume", "quantile", "topk", "stratified"])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float16])
+def test_a_table_in_row_parts_renders_and_differentiates_as_the_whole(monkeypatch, sampler, dtype, shape):
+    """A feature table over the buffer limit, the rays within it: the table is taken in row
+    parts, each read in place (the buffers the kernels read are the table's own rows, no copy);
+    the image equals the whole table's to float rounding (the parts' blends are added), alpha
+    exactly, the feature gradient byte for byte (each part's rows of dF; float16 tables' in float32
+    rows, split by their own size), the background's exactly, the Gaussians' to rounding (dL/dw of
+    every part summed before the alphas' backward)."""
+    scene = make_random_scene(**PART_SCENE)
+    n, w, h = len(scene[0]), scene[6], scene[7]
+    rng = np.random.default_rng(1)
+    pixels = rng.integers(0, (w, h), (PIXELS, 2))
+    table = torch.from_numpy(rng.normal(size=(n, PART_CHANNELS)).astype(np.float32)).to(dtype)
+    for background in (None, torch.linspace(-1, 1, PART_CHANNELS)):
+        whole = part_render(scene, table.clone().requires_grad_(True), sampler, background, pixels)
+        f = table.clone().requires_grad_(True)
+        read, parts, shared = [], [], memory.shared_array
+        def spy(rt, host, access="rw"):
+            if access == "r" and np.shares_memory(host, f.detach().numpy()):
+                read.append(host.__array_interface__["data"][0] - f.data_ptr())
+            return shared(rt, host, access)
+        counted = lambda *a, **k: parts.append(row_parts(*a, **k)) or parts[-1]
+        with monkeypatch.context() as patch:
+            limit_buffers(patch, table.element_size() * n * PART_CHANNELS // 3 + 64)
+            patch.setattr(memory, "shared_array", spy)
+            patch.setattr(autograd, "row_parts", counted)
+            split = part_render(scene, f, sampler, background, pixels)
+        assert not isinstance(split[3], list)                        # the rays were not split
+        row_bytes = table.element_size() * PART_CHANNELS
+        assert [len(p) for p in parts[:1]] == [3] and max(len(p) for p in parts) == 3 * 4 // table.element_size()
+        assert sorted(set(read)) == [r0 * row_bytes for r0, _ in parts[0]]   # the table's rows, in place
+        torch.testing.assert_close(split[0], whole[0], rtol=1e-5, atol=1e-6 * float(whole[0].abs().max()))
+        assert torch.equal(split[1], whole[1])
+        names = ["means", "quats", "scales", "opacities", "features", "background"]
+        for name, got, want in zip(names, split[2], whole[2]):
+            if want is None:
+                assert got is None
+            elif name in ("features", "background"):
+                assert torch.equal(got, want), name
+            else:
+                torch.testing.assert_close(got, want, rtol=1e-4, atol=1e-5 * float(want.abs().max()), msg=name)
+
+
+def test_gsplat_absgrad_of_a_table_in_row_parts(monkeypatch):
+    """gsplat's absgrad sums |dL/dmean2d| per pixel: a table in row parts gives the whole table's
+    (the parts' dL/dw are summed before the per-pixel terms, which are not linear in the table)."""
+    m, q, s, o, v, K, w, h = make_random_scene(**PART_SCENE)
+    colours = np.random.default_rng(2).random((len(m), PART_CHANNELS)).astype(np.float32)
+    out = []
+    for limited in (False, True):
+        if limited:
+            limit_buffers(monkeypatch, 4 * len(m) * PART_CHANNELS // 3 + 64)
+        params = [torch.from_numpy(a).requires_grad_(True) for a in (m, q, s, o, colours)]
+        image, _, meta = qr_cl.rasterization(*params, torch.from_numpy(v)[None], torch.from_numpy(K)[None], 16, 12,
+                                             sampler="quantile", k=6, absgrad=True)
+        meta["means2d"].retain_grad()
+        image.square().sum().backward()
+        out.append(meta["means2d"].absgrad)
+    torch.testing.assert_close(out[1], out[0], rtol=1e-4, atol=1e-6 * float(out[0].abs().max()))
+    assert float(out[0].abs().max()) > 0
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float16])
+def test_fused_volume_render_of_a_table_in_row_parts(monkeypatch, dtype):
+    """The fused V-Render walks the tile lists once per row part: the image of the parts added, the
+    whole table's to float rounding; alpha and depth exactly."""
+    m, q, s, o, v, K, w, h = make_random_scene(n=3000, seed=4, width=24, height=16)   # image < table / 3
+    table = torch.from_numpy(np.random.default_rng(3).normal(size=(len(m), PART_CHANNELS)).astype(np.float32)).to(dtype)
+    bg = np.linspace(-1, 1, PART_CHANNELS)
+    whole = qr_cl.render_volume_fused(m, q, s, o, table, v, K, w, h, background=bg)
+    limit_buffers(monkeypatch, table.element_size() * len(m) * PART_CHANNELS // 3 + 64)
+    parts = row_parts(runtime(), len(m), PART_CHANNELS, table.element_size())
+    split = qr_cl.render_volume_fused(m, q, s, o, table, v, K, w, h, background=bg)
+    assert len(parts) == 3
+    torch.testing.assert_close(split[0], whole[0], rtol=1e-5, atol=1e-6 * float(whole[0].abs().max()))
+    assert torch.equal(split[1], whole[1]) and np.array_equal(split[2]["depth"], whole[2]["depth"])

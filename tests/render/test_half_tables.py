@@ -12,8 +12,7 @@ import torch
 
 import qr_cl
 from qr_cl.render.autograd import table_rows
-from qr_cl.render.engine import channel_groups
-from qr_cl.runtime import runtime
+from qr_cl.runtime import row_parts, runtime
 
 CHANNELS = 40          # padded rows (cstride 48) and more than one vector
 #: The issue's tolerance: a half table's image within this fraction of the largest value.
@@ -99,18 +98,18 @@ def test_fused_volume_render_of_a_half_table(random_scene):
 
 
 def test_a_half_table_needs_half_the_buffer(random_scene, monkeypatch):
-    """Channel groups are sized by the table's element size: a half table that fits one buffer
-    renders whole where its float32 table must be split into two groups of channels."""
+    """Row parts are sized by the table's element size: a half table that fits one buffer is read
+    whole where its float32 table must be split into two row parts."""
     rt = runtime()
     n = 1000
     monkeypatch.setattr(type(rt), "max_buffer_bytes", property(lambda self: 2 * n * 512 + 1))
-    assert channel_groups(rt, n, 512, itemsize=2) == [slice(0, 512)]
-    assert channel_groups(rt, n, 512) == [slice(0, 256), slice(256, 512)]
+    assert row_parts(rt, n, 512, itemsize=2) == [(0, n)]
+    assert row_parts(rt, n, 512) == [(0, 500), (500, n)]
 
 
 def test_a_half_table_wanting_a_gradient_is_split_for_its_float32_gradient(random_scene, monkeypatch):
-    """A half table that fits one buffer while its float32 gradient does not is rendered in
-    channel groups that the gradient fits: the same image, and the gradient within float16
+    """A half table that fits one buffer while its float32 gradient does not is read whole and its
+    gradient summed in row parts that fit: the same image, and the gradient within float16
     rounding (the limit also splits the rays, and autograd adds the sets' gradients in float16)."""
     from tests.render.test_buffer_limits import limit_buffers
     m, q, s, o, v, K, w, h = random_scene

@@ -246,13 +246,14 @@ def test_per_camera_colours_and_no_gaussians(random_scene):
 
 
 @pytest.mark.parametrize("sampler,k", SAMPLERS_K)
-def test_alpha_gradients_follow_the_derivation(random_scene, sampler, k):
-    """blend_backward_alpha (kernel) = blend_ref.alpha_grads (the written derivation) = torch's
-    autograd of the weights, per selected entry."""
+@pytest.mark.parametrize("parts", [1, 3])
+def test_alpha_gradients_follow_the_derivation(random_scene, sampler, k, parts):
+    """weight_grads -> blend_backward_alpha (kernels) = blend_ref.alpha_grads (the written
+    derivation) = torch's autograd of the weights, per selected entry; dL/dw summed from the whole
+    table or from row parts of it."""
     from qr_cl.render import rasterize_plan
-    from qr_cl.runtime import channel_layout, device_rows, runtime
-    from qr_cl.stages import select
-    from qr_cl.stages import blend_backward_alpha
+    from qr_cl.runtime import channel_layout, device_empty, device_rows, runtime
+    from qr_cl.stages import blend_backward_alpha, select, weight_grads
     m, q, s, o, v, K, w, h = random_scene
     rng = np.random.default_rng(8)
     features = rng.standard_normal((len(m), 6)).astype(np.float32)
@@ -261,8 +262,13 @@ def test_alpha_gradients_follow_the_derivation(random_scene, sampler, k):
     dimage = rng.standard_normal((sel.n_rays, 6)).astype(np.float32)
     d_trem = rng.standard_normal(sel.n_rays).astype(np.float32) if sampler == "volume" else None
     cstride = channel_layout(6)[2]
-    with device_rows(runtime(), features, cstride) as f, device_rows(runtime(), dimage, cstride) as d:
-        kernel = blend_backward_alpha(sel, f, d, 6, d_trem).get()
+    cuts = np.linspace(0, len(m), parts + 1).astype(int)
+    d_w = device_empty(runtime(), sel.ids.shape)
+    with device_rows(runtime(), dimage, cstride) as d:
+        for r0, r1 in zip(cuts[:-1], cuts[1:]):
+            with device_rows(runtime(), features[r0:r1], cstride) as f:
+                weight_grads(sel, f, d, 6, row0=int(r0), out=d_w)
+    kernel = blend_backward_alpha(sel, d_w, d_trem).get()
     hst = sel.host()
     ids, valid = hst["ids"], hst["ids"] >= 0
     rows = sel.offsets.get()[:sel.n_rays, None] + np.arange(ids.shape[1])[None]
@@ -289,6 +295,38 @@ def test_alpha_gradients_follow_the_derivation(random_scene, sampler, k):
     scale = np.abs(auto).max()
     np.testing.assert_allclose(derived, auto, atol=1e-9 * scale)
     np.testing.assert_allclose(kernel, auto, atol=2e-4 * scale)
+
+
+@pytest.mark.parametrize("sampler,k", [("volume", 40), ("quantile", 5)])
+def test_a_row_parts_geometry_gradient_equals_its_twin(random_scene, sampler, k):
+    """The geometry backward of one row part of a table, the other rows' entries blending nothing
+    (their dL/dw 0): weight_grads -> blend_backward_alpha -> splat_backward equals the gradient of
+    the twin render_rays of that part (row0) w.r.t. means2d, conics and opacities."""
+    from qr_cl.render import rasterize_plan
+    from qr_cl.runtime import channel_layout, device_rows, device_zeros, runtime
+    from qr_cl.stages import blend_backward_alpha, select, splat_backward, weight_grads
+    m, q, s, o, v, K, w, h = random_scene
+    rng = np.random.default_rng(11)
+    r0, r1 = len(m) // 4, len(m) * 2 // 3
+    features = rng.standard_normal((len(m), 6)).astype(np.float32)
+    pixels = rng.integers(0, [w, h], (300, 2)).astype(np.int32)
+    plan = rasterize_plan(m, q, s, o, v, K, w, h)
+    sel = select(plan, sampler, k, pixels)
+    dimage = rng.standard_normal((sel.n_rays, 6)).astype(np.float32)
+    cstride = channel_layout(6)[2]
+    d_w = device_zeros(runtime(), sel.ids.shape)
+    with device_rows(runtime(), dimage, cstride) as d, device_rows(runtime(), features[r0:r1], cstride) as f:
+        weight_grads(sel, f, d, 6, row0=r0, out=d_w)
+    kernel = splat_backward(sel, blend_backward_alpha(sel, d_w)).get()
+    splats = torch.from_numpy(plan.splats.get().reshape(-1, 8).astype(np.float64))
+    means2d, conics, opacities = (splats[:, c].clone().requires_grad_(True) for c in (slice(0, 2), slice(2, 5), 5))
+    image, _ = blend_ref.render_rays(means2d, conics, opacities, torch.from_numpy(features[r0:r1]).double(),
+                                     sel.host()["ids"], pixels, sampler != "volume", row0=r0)
+    (image * torch.from_numpy(dimage).double()).sum().backward()
+    for got, twin in ((kernel[:, :2], means2d), (kernel[:, 2:5], conics), (kernel[:, 5], opacities)):
+        scale = float(twin.grad.abs().max())
+        assert scale > 0
+        np.testing.assert_allclose(got, twin.grad.numpy(), atol=2e-4 * scale, rtol=1e-3)
 
 
 def test_pixel_subset_gradients_equal_twin(random_scene):

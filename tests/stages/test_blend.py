@@ -107,22 +107,25 @@ def test_register_chunks_do_not_change_the_bytes(plan, monkeypatch, acc_floats):
     assert np.abs(want[1]).max() > 0
 
 
-def test_owner_bounds_split_the_entries_evenly(plan, monkeypatch):
-    """The scatter's owner ranges cover 0..N in order and hold about equal numbers of entries:
-    each within one histogram bin's entries of total / owners."""
+@pytest.mark.parametrize("part", ["all", "rows"])
+def test_owner_bounds_split_the_entries_evenly(plan, monkeypatch, part):
+    """The scatter's owner ranges cover g0..g1 (0..N, or a row part's rows) in order and hold about
+    equal numbers of the entries of those Gaussians: each within two histogram bins' entries of
+    total / owners (a part's ends cut bins)."""
     monkeypatch.setattr(blend_stage, "OWNER_BINS", 64)
     sel = select(plan, "quantile", 6)
     h = sel.host()
-    ids = h["ids"][h["ids"] >= 0]
+    g0, g1 = (0, sel.n_gaussians) if part == "all" else (sel.n_gaussians // 5, sel.n_gaussians * 3 // 4)
+    ids = h["ids"][(h["ids"] >= g0) & (h["ids"] < g1)]
     for owners in (1, 2, 5):
-        bounds = blend_stage.owner_bounds(sel, owners)
-        assert bounds[0] == 0 and bounds[-1] == sel.n_gaussians and len(bounds) == owners + 1
+        bounds = blend_stage.owner_bounds(sel, owners, g0, g1)
+        assert bounds[0] == g0 and bounds[-1] == g1 and len(bounds) == owners + 1
         assert (np.diff(bounds) >= 0).all()
         per_owner = np.histogram(ids, bins=bounds)[0]
         shift = max(0, int(np.ceil(np.log2(sel.n_gaussians / 64))))
         worst_bin = np.bincount(ids >> shift).max()
         assert per_owner.sum() == len(ids)
-        assert np.abs(per_owner - len(ids) / owners).max() <= worst_bin
+        assert np.abs(per_owner - len(ids) / owners).max() <= (1 if part == "all" else 2) * worst_bin
 
 
 def test_volume_selection_blend_equals_fused(plan):
@@ -203,10 +206,17 @@ def test_outputs_at_any_alignment(plan, shift, monkeypatch):
 
 def test_shape_errors(plan):
     sel = select(plan, "quantile", 3)
+    n = sel.n_gaussians
     with pytest.raises(ValueError, match="features"):
-        blend_forward(sel, device_rows(plan, np.zeros((3, 16), np.float32)), 16)
+        blend_forward(sel, device_rows(plan, np.zeros((3, 32), np.float32)), 16)
+    with pytest.raises(ValueError, match=r"features must be rows of the \d+ Gaussians"):
+        blend_forward(sel, device_rows(plan, np.zeros((3, 16), np.float32)), 16, row0=n - 2)
     with pytest.raises(ValueError, match="dimage"):
         blend_backward(sel, device_rows(plan, np.zeros((5, 16), np.float32)), 16)
+    with pytest.raises(ValueError, match=r"dF must be rows"):
+        blend_backward(sel, device_rows(plan, np.zeros((sel.n_rays, 16), np.float32)), 16, row0=1, n_rows=n)
+    with pytest.raises(ValueError, match="pass it as out"):
+        blend_forward(sel, device_rows(plan, np.zeros((n, 16), np.float32)), 16, accumulate=True)
 
 
 def test_rows_to_half_rounds_as_numpy(plan):
@@ -222,3 +232,70 @@ def test_rows_to_half_rounds_as_numpy(plan):
     assert got.tobytes() == values.astype(np.float16).tobytes()
     with pytest.raises(ValueError, match="float16 out"):
         blend_stage.rows_to_half(rt, memory.to_device(rt, values), memory.device_empty(rt, values.shape))
+
+
+def row_split(n: int) -> list[tuple[int, int]]:
+    """Three unequal row parts of n rows, none empty."""
+    return [(0, n // 3), (n // 3, n // 3 + n // 4), (n // 3 + n // 4, n)]
+
+
+@pytest.mark.parametrize("sampler,k", [("quantile", 10), ("volume", 1), ("topk", 6)])
+@pytest.mark.parametrize("channels,half", [(37, False), (512, False), (48, True)])
+@pytest.mark.parametrize("launch", ["cpu", "gpu"])
+def test_row_parts_add_up_to_the_whole_table(plan, monkeypatch, sampler, k, channels, half, launch):
+    """A table in row parts: each part's blend equals the twin of that part (entries of other
+    Gaussians blend nothing), the parts accumulated into one image equal the whole table's blend
+    to float rounding, the first blend fused into a deferred selection or not; each part's dF is
+    the whole table's rows of dF, byte for byte (scatter and gather, half tables' float rows)."""
+    monkeypatch.setattr(plan.runtime, "gpu_shaped", launch == "gpu")
+    rng = np.random.default_rng(channels)
+    n = plan.splats.shape[0]
+    cstride = channel_layout(channels)[2]
+    features = padded_rows(rng.standard_normal((n, channels)).astype(np.float32), cstride)
+    table = features.astype(np.float16) if half else features
+    background = rng.standard_normal(channels).astype(np.float32)
+    rt = plan.runtime
+    for defer in (False, True):
+        sel = select(plan, sampler, k, defer=defer)
+        whole = blend_forward(select(plan, sampler, k), cla.to_device(rt.queue, table), channels, background).get()
+        image = memory.device_empty(rt, (sel.n_rays, cstride))
+        for i, (r0, r1) in enumerate(row_split(n)):
+            part = cla.to_device(rt.queue, table[r0:r1])
+            alone = blend_forward(sel, part, channels, row0=r0).get()[:, :channels]   # (makes a deferred sel)
+            h = sel.host()
+            want = blend_ref.blend(h["ids"], h["weights"], table[r0:r1, :channels], row0=r0)
+            scale = blend_ref.blend(h["ids"], np.abs(h["weights"]), np.abs(table[:, :channels]))
+            assert_rows_close(alone, want, scale.max(axis=1, keepdims=True))
+            blend_forward(sel, part, channels, None if i else background, out=image, row0=r0, accumulate=i > 0)
+        scale = np.abs(whole).max(axis=1, keepdims=True)
+        assert_rows_close(image.get()[:, :channels], whole[:, :channels], scale, rtol=1e-6)
+    dimage = cla.to_device(rt.queue, rng.standard_normal((sel.n_rays, cstride)).astype(np.float32))
+    dF = blend_backward(sel, dimage, channels).get()
+    for r0, r1 in row_split(n):
+        part = blend_backward(sel, dimage, channels, row0=r0, n_rows=r1 - r0).get()
+        assert part.tobytes() == dF[r0:r1].tobytes()
+
+
+@pytest.mark.parametrize("half", [False, True])
+def test_fused_volume_render_in_row_parts(plan, half):
+    """The fused V-Render of a table in row parts: each part equals its twin (the other rows blend
+    nothing), and the parts accumulated equal the whole table's render to float rounding."""
+    from qr_cl.stages import vrender_ref
+    rng = np.random.default_rng(4)
+    n, channels = plan.splats.shape[0], 40
+    cstride = channel_layout(channels)[2]
+    features = padded_rows(rng.standard_normal((n, channels)).astype(np.float32), cstride)
+    table = features.astype(np.float16) if half else features
+    background = rng.standard_normal(channels).astype(np.float32)
+    rt = plan.runtime
+    meta = plan.meta()
+    whole = render_fused(plan, cla.to_device(rt.queue, table), channels, background)[0].copy()
+    out = memory.host_empty((plan.height, plan.width, cstride))
+    for i, (r0, r1) in enumerate(row_split(n)):
+        part = cla.to_device(rt.queue, table[r0:r1])
+        alone = render_fused(plan, part, channels, row0=r0)[0]
+        want = vrender_ref.vrender(meta, meta["tile_ranges"], meta["flatten_ids"], table[r0:r1, :channels],
+                                   plan.width, plan.height, row0=r0)[0]
+        np.testing.assert_allclose(alone, want, rtol=1e-5, atol=1e-5 * np.abs(want).max())
+        image = render_fused(plan, part, channels, None if i else background, out=out, row0=r0, accumulate=i > 0)[0]
+    np.testing.assert_allclose(image, whole, rtol=1e-6, atol=1e-6 * np.abs(whole).max())
