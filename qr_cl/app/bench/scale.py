@@ -69,8 +69,8 @@ def run_scale(out: Path, scales=SCALES, k: int = 40, channels: int = 512, size: 
 def stage_channels(rt, n: int, channels: int) -> int:
     """The channels of the blend stages' rows at ``n`` Gaussians: ``channels``, halved until an
     [n, C] float32 table fits one device buffer: the backward's dF rows are float32 whatever the
-    table's dtype (the public call splits a table into such channel groups itself; the stage rows
-    time one group)."""
+    table's dtype (the public call takes a larger table in row parts itself; the stage rows time
+    one buffer's table)."""
     while channels > 16 and n * channel_layout(channels)[2] * 4 > rt.max_buffer_bytes:
         channels //= 2
     return channels
@@ -99,7 +99,7 @@ def scale_markdown(report: dict) -> str:
               "memory free when it starts). " if "max_buffer_bytes" in report else "") +
              "The blend rows time the largest table that fits one device buffer: C = " +
              ", ".join(f"{blend_c[n]} at N={n:,}" for n in ns) + "; end-to-end is the public call with all "
-             f"{report['channels']} channels (split into such groups where needed).", "",
+             f"{report['channels']} channels (a table over one buffer taken in row parts).", "",
              "| stage | " + " | ".join(f"N={n:,}" for n in ns) + " | " + " | ".join(f"x at {n:,}" for n in ns[1:]) + " |",
              "| --- |" + " ---: |" * (2 * len(ns) - 1)]
     for stage in STAGES:

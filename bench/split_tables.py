@@ -1,0 +1,121 @@
+"""A feature table over the device's largest buffer: this checkout against another install, back to back.
+
+The 300k-Gaussian dense room (:func:`qr_cl.app.scenes.procedural.dense_room`), a 512-D float32
+table (614 MB, in torch's memory) and the device's largest buffer forced to a third of it
+(``Runtime.max_buffer_bytes``), so that the table must be split while the image still fits one
+buffer (hence 320x240: at 3M Gaussians and PoCL's 4 GiB a 640x480 image fits too). Per install,
+in fresh processes: Q-Render K=40 through ``qr_cl.rasterize`` with the limit (``split``) and
+without it (``whole``), the minimum over the calls, and the bytes a split call copies out of the
+table (the padded host rows made by ``qr_cl.runtime.memory.device_rows``: where an install with
+channel groups copies each group's columns, and row parts would copy a part they cannot read in
+place)::
+
+    python bench/split_tables.py --base /path/to/other/python --rounds 3
+
+Prints a table and the ratio of the base's split call to this checkout's. Timings are the
+machine's of the moment; keep a report only with the machine named.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from benchutil import timing
+
+WIDTH, HEIGHT, CHANNELS, DENSE_N, K = 320, 240, 512, 300_000, 40
+
+
+def make_scene(out: Path) -> None:
+    """Write the dense room's Gaussians and camera to ``out`` (npz)."""
+    from qr_cl.app.scenes.procedural import dense_room
+    g, cam = dense_room(DENSE_N, width=WIDTH, height=HEIGHT)
+    np.savez(out, means=g.means, quats=g.quats, scales=g.scales, opacities=g.opacities, viewmat=cam.viewmat, K=cam.K)
+
+
+def measure_install(scene_file: Path, calls: int) -> dict:
+    """{"whole_s", "split_s", "copied_bytes", "table_bytes"} for the qr_cl this interpreter imports."""
+    import torch
+
+    import qr_cl
+    from qr_cl.runtime import Runtime, memory
+    torch.set_num_threads(1)
+    a = np.load(scene_file)
+    geo = [np.ascontiguousarray(a[k], np.float32) for k in ("means", "quats", "scales", "opacities")]
+    table = torch.empty(len(geo[0]), CHANNELS).copy_(
+        torch.from_numpy(np.random.default_rng(0).random((len(geo[0]), CHANNELS), dtype=np.float32)))
+    table_bytes = table.numel() * table.element_size()
+
+    def render():
+        return qr_cl.rasterize(*geo, table, a["viewmat"], a["K"], WIDTH, HEIGHT, sampler="quantile", k=K)[0]
+
+    copied = []
+    padded = memory.host_empty                            # device_rows' copies of rows it cannot read in place
+
+    def counting(shape, dtype=np.float32):
+        out = padded(shape, dtype)
+        copied.append(out.nbytes)
+        return out
+    result = {"table_bytes": table_bytes}
+    for name in ("whole", "split"):
+        if name == "split":
+            Runtime.max_buffer_bytes = property(lambda self: table_bytes // 3)
+        kept = [render()]                                 # warm-up; results stay alive as in a render loop
+
+        def keep() -> None:
+            kept[0] = render()
+        result[f"{name}_s"] = min(timing.timed_calls(keep, calls)[0])
+        memory.host_empty, copied[:] = counting, []
+        keep()
+        memory.host_empty = padded
+        result[f"{name}_copied_bytes"] = sum(copied)
+    return result
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--base", metavar="PYTHON", help="the interpreter of the other install")
+    ap.add_argument("--rounds", type=int, default=3, help="runs of each install, alternating")
+    ap.add_argument("--calls", type=int, default=3, help="timed calls per run, after a warm-up")
+    ap.add_argument("--worker", type=Path, help=argparse.SUPPRESS)   # scene file: measure, print JSON
+    args = ap.parse_args()
+    if args.worker:
+        print(json.dumps(measure_install(args.worker, args.calls)))
+        return
+    if not args.base:
+        ap.error("--base PYTHON is required")
+    runs = {"base": [], "this": []}
+    with tempfile.TemporaryDirectory() as tmp:
+        scene_file = Path(tmp) / "scene.npz"
+        make_scene(scene_file)
+        for r in range(args.rounds):
+            for label, python in (("base", args.base), ("this", sys.executable)):
+                cmd = [python, __file__, "--worker", str(scene_file), "--calls", str(args.calls)]
+                proc = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp)
+                if proc.returncode:
+                    sys.exit(f"{label} run failed ({' '.join(cmd)}):\n{proc.stderr[-3000:]}")
+                runs[label].append(json.loads(proc.stdout.strip().splitlines()[-1]))
+                run = runs[label][-1]
+                print(f"round {r + 1} {label}: whole {run['whole_s'] * 1e3:.0f} ms, split {run['split_s'] * 1e3:.0f} ms, "
+                      f"copied {run['split_copied_bytes'] / 1e6:.0f} MB", flush=True)
+    best = {(label, key): min(r[key] for r in rs) for label, rs in runs.items() for key in ("whole_s", "split_s")}
+    table_mb = runs["this"][0]["table_bytes"] / 1e6
+    print(f"\nbase = {args.base}; dense room {DENSE_N // 1000}k, {WIDTH}x{HEIGHT}, C={CHANNELS} float32 "
+          f"({table_mb:.0f} MB), Q-Render K={K}, largest buffer forced to a third of the table; "
+          f"minimum ms over {args.rounds} runs x {args.calls} calls\n")
+    print("| install | whole ms | split ms | split / whole | MB copied per split call |")
+    print("| --- | ---: | ---: | ---: | ---: |")
+    for label in ("base", "this"):
+        whole, split = best[label, "whole_s"] * 1e3, best[label, "split_s"] * 1e3
+        print(f"| {label} | {whole:.0f} | {split:.0f} | {split / whole:.2f}x | "
+              f"{runs[label][-1]['split_copied_bytes'] / 1e6:.0f} |")
+    print(f"\nsplit call, base / this: {best['base', 'split_s'] / best['this', 'split_s']:.2f}x")
+
+
+if __name__ == "__main__":
+    main()
