@@ -164,9 +164,8 @@ def render_view(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, 
     """Render features [N,C] of the Gaussians (from :func:`gaussian_tensors`, unit quats) for
     ``view``: plan, then per set of rays (:func:`ray_sets`) select and blend through
     :class:`~qr_cl.render.autograd.RasterFunction` (in row parts where the table exceeds a device
-    buffer), so
-    gradients reach features, background, Gaussians and ``viewmat`` (a [4,4] tensor with
-    view.viewmat's values, or None: no camera gradient). ``cache`` reuses the selections of the
+    buffer), so gradients reach features, background, Gaussians and ``viewmat`` (a [4,4] tensor
+    with view.viewmat's values, or None: no camera gradient). ``cache`` reuses the selections of the
     same geometry, camera, sampler, K and rays.
 
     ``extra``: [N,F] signals blended through the same selections (one plan, one walk per ray; a

@@ -46,8 +46,7 @@ def shape(request, monkeypatch):
 def test_split_render_equals_the_whole(random_scene, monkeypatch, sampler, shape):
     n, w, h = len(random_scene[0]), random_scene[6], random_scene[7]
     whole = render(random_scene, 40, sampler)
-    # features fit only 32 of their 48 padded channels' rows at a time (two row parts), an image
-    # only ~1/8 of the rays
+    # two thirds of the feature table fit at a time (two row parts), an image only ~1/8 of the rays
     limit_buffers(monkeypatch, 4 * max(n * 32, w * h * 48 // 8))
     split = render(random_scene, 40, sampler)
     assert isinstance(split[3], list) and len(split[3]) >= 8      # it really was split
