@@ -30,7 +30,8 @@ class Browser:
     """One headless Chromium with one page (a DevTools session attached to it)."""
 
     def __init__(self, executable: str, width: int = 1200, height: int = 900):
-        self._profile = tempfile.TemporaryDirectory(prefix="qr-cl-chromium-")
+        # chromium's helper processes can still be writing to the profile as it is removed
+        self._profile = tempfile.TemporaryDirectory(prefix="qr-cl-chromium-", ignore_cleanup_errors=True)
         to_browser, self._send_fd = os.pipe()
         self._recv_fd, from_browser = os.pipe()
 

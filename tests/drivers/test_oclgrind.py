@@ -208,7 +208,7 @@ def row_parts_exercise(rt, geo, cam, feats, wide, bg, pixels) -> None:
         image = render_fused(plan, to_device(rt, rows[r0:r1]), feats.shape[1], None if i else bg, out=out, row0=r0,
                              accumulate=i > 0)[0]
     assert np.abs(image - whole).max() < 1e-4, "fused V-Render in row parts != the whole table's"
-    limit, Runtime.max_buffer_bytes = Runtime.max_buffer_bytes, property(lambda self: wide.nbytes // 3 + 64)
+    limit, Runtime.max_buffer_bytes = Runtime.max_buffer_bytes, property(lambda self: wide.strides[0] * -(-n // 3))
     assert len(row_parts(rt, n, channel_layout(wide.shape[1])[2])) == 3
     gpu_shaped = rt.gpu_shaped
     for rt.gpu_shaped, sampler in ((gpu_shaped, "volume"), (gpu_shaped, "quantile"), (False, "quantile")):

@@ -60,7 +60,8 @@ def bare_gather_blend(rt: Runtime, rays: int, k: int, channels: int, n_rows: int
     def run():
         rt.launch("blend", (size, n_chunks), defines={"VW": vw, "NV": nv}, local_size=local,
                   offsets=offsets, count=count, n_entries=ids.size, sel_ids=ids, sel_w=weights,
-                  features=features, n=n_rows, cstride=cstride, full=0, n_rays=rays, width=0, height=0, tiles_x=1, background=unused,
-                  t_rem=unused, use_bg=0, stream=streamed(image.nbytes), image=image)
+                  features=features, row0=0, n_rows=n_rows, cstride=cstride, full=0, n_rays=rays, width=0,
+                  height=0, tiles_x=1, background=unused, t_rem=unused, use_bg=0, accumulate=0,
+                  stream=streamed(image.nbytes), image=image)
         rt.queue.finish()
     return measure(run, rounds)["min_s"]
