@@ -33,9 +33,12 @@ def run_train(python: str, room: str, steps: int, extra: list[str]) -> tuple[flo
     with tempfile.TemporaryDirectory() as out:
         before = resource.getrusage(resource.RUSAGE_CHILDREN)
         start = time.perf_counter()
-        subprocess.run([python, "-m", "qr_cl.app.cli", "train", room, "--out", out, "--steps", str(steps),
-                        "--checkpoint-every", "100000", *extra], check=True, stdout=subprocess.DEVNULL,
-                       stderr=subprocess.DEVNULL, cwd=out)      # not this checkout: python -m imports from the cwd
+        proc = subprocess.run([python, "-m", "qr_cl.app.cli", "train", room, "--out", out, "--steps", str(steps),
+                               "--checkpoint-every", "100000", *extra], stdout=subprocess.DEVNULL,
+                              stderr=subprocess.PIPE, text=True, cwd=out)   # not the checkout: -m imports the cwd
+        if proc.returncode:
+            raise SystemExit(f"{python} -m qr_cl.app.cli train {room} --steps {steps} failed "
+                             f"(rc {proc.returncode}):\n{proc.stderr[-4000:]}")
         wall = time.perf_counter() - start
         after = resource.getrusage(resource.RUSAGE_CHILDREN)
     return wall, (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import re
+import threading
 import warnings
 from dataclasses import dataclass, field
 from functools import lru_cache
@@ -250,6 +251,8 @@ class Runtime:
     pool: cl_tools.MemoryPool = field(init=False, repr=False)
     gpu_shaped: bool = field(init=False)
     _programs: dict = field(init=False, default_factory=dict)
+    _build_lock: threading.Lock = field(init=False, default_factory=threading.Lock, repr=False)
+    _launch_lock: threading.Lock = field(init=False, default_factory=threading.Lock, repr=False)
 
     def __post_init__(self) -> None:
         self.context = cl.Context([self.device])
@@ -292,27 +295,37 @@ class Runtime:
     def kernel(self, name: str, **defines: int | float) -> tuple[cl.Kernel, tuple[KernelArg, ...]]:
         """The kernel ``name`` built with ``-D KEY=VALUE`` per define (and the shared constants
         and ``ACC_FLOATS``, :attr:`accumulator_floats`), with the arguments its source declares
-        (checked against the built kernel's count). Programs and kernel objects are cached."""
+        (checked against the built kernel's count). Programs and kernel objects are cached; a
+        program is built once, under a lock, and published whole, so threads may ask at once."""
         file = kernel_files().get(name)
         if file is None:
             raise KeyError(f"no kernel named {name!r} in qr_cl.kernels")
         key = (file, tuple(sorted(defines.items())))
-        if key not in self._programs:
-            constants = {**KERNEL_CONSTANTS, "ACC_FLOATS": self.accumulator_floats, **defines}
-            source = kernel_source(file)
-            with warnings.catch_warnings():      # some compilers (Intel's) always return a build log
-                warnings.simplefilter("ignore", cl.CompilerWarning)
-                program = cl.Program(self.context, source).build(
-                    options=[f"-D{k}={v}" for k, v in sorted(constants.items())])
-            declared = kernel_signatures(source, constants)
-            self._programs[key] = {}
-            for k in program.all_kernels():
-                args = declared[k.function_name]
-                if len(args) != k.num_args:
-                    raise SignatureError(f"kernel {k.function_name} ({file}): the source declares {len(args)} "
-                                         f"arguments, the built program {k.num_args}")
-                self._programs[key][k.function_name] = (k, args)
-        return self._programs[key][name]
+        kernels = self._programs.get(key)
+        if kernels is None:
+            with self._build_lock:               # one build per program, published whole
+                kernels = self._programs.get(key)
+                if kernels is None:
+                    kernels = self._programs[key] = self._build(file, defines)
+        return kernels[name]
+
+    def _build(self, file: str, defines: dict) -> dict[str, tuple[cl.Kernel, tuple[KernelArg, ...]]]:
+        """{kernel name: (kernel, declared arguments)} of ``file`` built with ``defines``."""
+        constants = {**KERNEL_CONSTANTS, "ACC_FLOATS": self.accumulator_floats, **defines}
+        source = kernel_source(file)
+        with warnings.catch_warnings():          # some compilers (Intel's) always return a build log
+            warnings.simplefilter("ignore", cl.CompilerWarning)
+            program = cl.Program(self.context, source).build(
+                options=[f"-D{k}={v}" for k, v in sorted(constants.items())])
+        declared = kernel_signatures(source, constants)
+        kernels = {}
+        for k in program.all_kernels():
+            args = declared[k.function_name]
+            if len(args) != k.num_args:
+                raise SignatureError(f"kernel {k.function_name} ({file}): the source declares {len(args)} "
+                                     f"arguments, the built program {k.num_args}")
+            kernels[k.function_name] = (k, args)
+        return kernels
 
     def launch(self, name: str, global_size: int | tuple[int, ...], defines: dict | None = None,
                local_size: tuple[int, ...] | None = None, **args) -> None:
@@ -322,7 +335,8 @@ class Runtime:
         a missing or unknown argument raises TypeError naming the kernel. Without ``local_size``
         a GPU-shaped runtime (:attr:`gpu_shaped`) runs work-groups of GROUP_SIZE over the first
         dimension padded up to a multiple of it (every kernel returns early past its own count);
-        a CPU-shaped one leaves the grouping to the driver.
+        a CPU-shaped one leaves the grouping to the driver. Setting the arguments and enqueueing
+        happen under a lock (a kernel object is shared by the threads that launch it).
         """
         kernel, declared = self.kernel(name, **(defines or {}))
         names = [a.name for a in declared]
@@ -333,7 +347,9 @@ class Runtime:
         if local_size is None and self.gpu_shaped:
             local_size = (GROUP_SIZE,) + (1,) * (len(size) - 1)
             size = (-(-size[0] // GROUP_SIZE) * GROUP_SIZE,) + size[1:]
-        kernel(self.queue, size, local_size, *(bind(name, a, args[a.name]) for a in declared))
+        bound = [bind(name, a, args[a.name]) for a in declared]
+        with self._launch_lock:                  # a kernel object's arguments are not thread-safe
+            kernel(self.queue, size, local_size, *bound)
 
 
 

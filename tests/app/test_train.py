@@ -79,3 +79,36 @@ def test_baseline_fits_one_scene(scene):
     untrained = torch.nn.functional.normalize(torch.randn(feats.shape, generator=torch.Generator().manual_seed(9)), dim=1)
     rng = lambda: np.random.default_rng(123)
     assert scene_loss(data, torch.from_numpy(feats), cfg, rng())[0] < 0.7 * scene_loss(data, untrained, cfg, rng())[0]
+
+
+def test_the_training_thread_runs_no_kernel_while_the_next_rays_are_made(scene, tmp_path, monkeypatch):
+    """The next step's rays are made on a background thread from when the step's blend backward
+    is done; the training thread then launches nothing until it has them (kernel objects and
+    the memory pool are not shared between threads at once)."""
+    import threading
+    import time
+
+    from qr_cl.app.training import trainer as trainer_module
+    from qr_cl.runtime.device import Runtime
+
+    launches, making = [], []
+    launch, make_rays = Runtime.launch, trainer_module.Trainer.make_rays
+
+    def logged_launch(self, name, *args, **kwargs):
+        launches.append((threading.current_thread() is threading.main_thread(), time.perf_counter(), name))
+        return launch(self, name, *args, **kwargs)
+
+    def timed_make_rays(self, *args):
+        start = time.perf_counter()
+        try:
+            return make_rays(self, *args)
+        finally:
+            if threading.current_thread() is not threading.main_thread():
+                making.append((start, time.perf_counter()))
+
+    monkeypatch.setattr(Runtime, "launch", logged_launch)
+    monkeypatch.setattr(trainer_module.Trainer, "make_rays", timed_make_rays)
+    train(_cfg(scene, tmp_path, steps=5, k=8), progress=False)
+    assert len(making) == 4                     # steps 2..5 made ahead
+    overlapping = [name for main, t, name in launches if main and any(a < t < b for a, b in making)]
+    assert not overlapping, overlapping

@@ -45,3 +45,46 @@ def test_a_device_failing_the_trial_is_skipped(monkeypatch):
 
 def test_trial_kernel_runs_on_the_chosen_device():
     assert device.trial_run(device.choose_device()) is None
+
+
+def test_two_threads_asking_for_one_program_get_it_built_once(monkeypatch):
+    """The training thread and the prefetch thread may ask for the same kernel file at once: the
+    program is built once and published whole (a half-filled cache entry gave KeyError), and
+    launches from both threads give their own results."""
+    import threading
+    import time
+
+    import numpy as np
+    import pyopencl.array as cla
+
+    rt = device.Runtime(device.choose_device())
+    builds, signatures = [], device.kernel_signatures
+
+    def slow_build(source, constants):          # read once per program build
+        builds.append(threading.current_thread().name)
+        time.sleep(0.2)                         # the other thread arrives while this one builds
+        return signatures(source, constants)
+
+    monkeypatch.setattr(device, "kernel_signatures", slow_build)
+    start, errors, results = threading.Barrier(2), [], {}
+
+    def spans(length: int) -> None:
+        try:
+            count = cla.to_device(rt.queue, np.full(64, length, np.int32))
+            offsets = cla.to_device(rt.queue, np.arange(64, dtype=np.int32) * length)
+            out = cla.empty(rt.queue, 64, np.int32)
+            start.wait()
+            for _ in range(50):
+                rt.launch("ray_spans", 64, n_rays=64, offsets=offsets, count=count, n_entries=64 * length,
+                          spans=out)
+            results[length] = out.get()
+        except Exception as exc:              # reported by the assertion below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=spans, args=(length,)) for length in (2, 3)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors and len(builds) == 1
+    assert (results[2] == 2).all() and (results[3] == 3).all()

@@ -15,16 +15,18 @@ no [rays, feature_dim] rays. Adam; ReduceLROnPlateau (factor 0.1) on the mean lo
 Where the time goes (demo rooms): the selections are geometry, so each view's
 whole-image selection is made once and a step's rays are gathered from it (up to
 ``view_selections_mb`` of them are kept; then views are selected ray by ray each step), and the
-next step's rays are made on a background thread while this step renders and back-propagates.
+next step's rays are made on a background thread while this step back-propagates through the
+network.
 Torch runs one intra-op thread (the CLI's ``--torch-threads``): its OpenMP workers spin-wait at
 barriers, and beside other busy processes two of them made a step many times slower than one.
 The sparse convolutions, most of a step, run as row blocks on :func:`conv_thread_count` threads
 (every core the process may use; results do not depend on the count, see
 :mod:`qr_cl.backbone.conv`), and PoCL runs the kernels on the same cores
-(:func:`qr_cl.app.process.cap_kernel_threads`). They take turns: the training thread waits while it
-renders, and the next step's rays are started after the network's forward (its convolutions),
-beside the blend, so that a convolution thread and a PoCL worker are seldom both asked for one
-core.
+(:func:`qr_cl.app.process.cap_kernel_threads`). The training thread waits while it renders. The
+next step's rays are started once the step's last blend backward is done, so their kernels run
+beside the network's backward (torch only), never beside the training thread's own kernels:
+OpenCL kernel objects (ours and pyopencl's) must not be set up from two threads at once, and the
+two threads never run OpenCL work at the same time.
 
 Scale-out: ``torchrun --nproc_per_node N -m qr_cl.app.train ...`` runs data-parallel over the
 scenes of a step (gloo on CPU): rank r takes slots r, r+N, ...; gradients are summed with
@@ -44,6 +46,7 @@ import signal
 import sys
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -129,13 +132,18 @@ class Trainer:
         return rays
 
     def prefetch(self, step: int) -> None:
-        """Start making the rays of ``step`` on a background thread (one at a time, so the OpenCL
-        work of the selections never runs beside itself; the training thread meanwhile runs
-        torch and only the blend kernels, so the two never share a kernel object)."""
+        """Start making the rays of ``step`` on a background thread (one slot at a time). Call it
+        only when the training thread runs no more OpenCL work until it takes the result (see
+        :meth:`train_step`): the two threads must never run kernels at the same time."""
         if self._worker is None:
             self._worker = ThreadPoolExecutor(1, thread_name_prefix="qr-cl-rays")
         for slot, scene in self.my_slots(step):
             self._ahead[(step, slot)] = self._worker.submit(self.make_rays, step, slot, scene)
+
+    def _prefetch_after_blend(self, step: int, grad: torch.Tensor) -> None:
+        """A gradient hook on the table (called once the blend backward made its gradient, which it
+        leaves unchanged): :meth:`prefetch` the rays of ``step``."""
+        self.prefetch(step)
 
     def close(self) -> None:
         """Wait for and drop the rays made ahead, and stop their thread."""
@@ -147,8 +155,11 @@ class Trainer:
     def train_step(self) -> tuple[float, int]:
         """One optimizer step over this step's scenes; returns (global loss, rays on this rank).
 
-        The next step's rays are made on a background thread, started after the first slot's
-        network forward (unless this is the last step of ``cfg.steps``)."""
+        The next step's rays are made on a background thread, started by a hook on the last
+        slot's table gradient, i.e. when its blend backward is done and only torch work (the rest
+        of the network's backward, the optimizer) is left (unless this is the last step of
+        ``cfg.steps``); the step waits for them before it returns and frees its own device arrays
+        (the memory pool is not shared between threads at once either)."""
         cfg = self.cfg
         self.net.train()
         self.opt.zero_grad(set_to_none=False)
@@ -158,8 +169,8 @@ class Trainer:
         total, rays = torch.zeros(()), 0
         for i, ((slot, scene), step) in enumerate(zip(mine, made)):
             table = self.net.head_inputs(self.batch(scene), torch.from_numpy(step.rows))
-            if i == 0 and self.step + 1 < cfg.steps:
-                self.prefetch(self.step + 1)
+            if i == len(mine) - 1 and self.step + 1 < cfg.steps:
+                table.register_hook(partial(self._prefetch_after_blend, self.step + 1))
             loss = rays_loss(step, table, cfg.temperature, self.net.head_matrix())
             (loss / cfg.batch_scenes).backward()
             total += loss.detach() / cfg.batch_scenes
@@ -170,6 +181,8 @@ class Trainer:
                 dist.all_reduce(p.grad)
             dist.all_reduce(total)
         self.opt.step()
+        for future in self._ahead.values():     # done before this step's device arrays are freed
+            future.result()
         self.step += 1
         value = float(total)
         self.history.append(value)
