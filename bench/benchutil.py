@@ -1,8 +1,13 @@
 """Helpers shared by the benchmarks (imported by name: bench/ is on sys.path under pytest)."""
 from __future__ import annotations
 
+import argparse
 import importlib.util
+import json
+import subprocess
+import sys
 from pathlib import Path
+from typing import Callable
 
 
 def run(benchmark, fn, full: bool, rounds: int = 5):
@@ -41,3 +46,34 @@ def fox_and_dense_room(data: Path | None, width: int, height: int, dense_n: int)
         scenes["fox"] = (g, qr_cl.orbit_cameras(g.means, 8, width, height)[1])
     scenes[f"dense-room-{dense_n // 1000}k"] = dense_room(dense_n, width=width, height=height)
     return scenes
+
+
+def ab_arguments(description: str, rounds: int, calls: int) -> argparse.ArgumentParser:
+    """The options of a script timing this checkout against another install: ``--base PYTHON``,
+    ``--rounds``, ``--calls``, and the hidden ``--worker FILE`` under which it measures the
+    install it runs in (see :func:`ab_rounds`)."""
+    ap = argparse.ArgumentParser(description=description)
+    ap.add_argument("--base", metavar="PYTHON", help="the interpreter of the other install")
+    ap.add_argument("--rounds", type=int, default=rounds, help="runs of each install, alternating")
+    ap.add_argument("--calls", type=int, default=calls, help="timed calls per run, after a warm-up")
+    ap.add_argument("--worker", type=Path, help=argparse.SUPPRESS)   # inputs file: measure, print JSON
+    return ap
+
+
+def ab_rounds(script: str, base: str, inputs: Path, rounds: int, calls: int,
+              describe: Callable[[dict], str]) -> dict[str, list[dict]]:
+    """{"base": [...], "this": [...]}: the JSON that ``script --worker inputs --calls calls``
+    prints last, run ``rounds`` times under ``base`` and this interpreter alternately, each in a
+    fresh process in ``inputs``' folder (not the checkout: ``python script`` imports its install,
+    not this tree). Prints each run as ``describe`` words it; exits with the tail of a failed
+    run's stderr."""
+    runs: dict[str, list[dict]] = {"base": [], "this": []}
+    for r in range(rounds):
+        for label, python in (("base", base), ("this", sys.executable)):
+            cmd = [python, script, "--worker", str(inputs), "--calls", str(calls)]
+            proc = subprocess.run(cmd, capture_output=True, text=True, cwd=inputs.parent)
+            if proc.returncode:
+                sys.exit(f"{label} run failed ({' '.join(cmd)}):\n{proc.stderr[-3000:]}")
+            runs[label].append(json.loads(proc.stdout.strip().splitlines()[-1]))
+            print(f"round {r + 1} {label}: {describe(runs[label][-1])}", flush=True)
+    return runs

@@ -23,16 +23,13 @@ over rounds and calls of each, the speed-up, and each build's fused V-Render ove
 """
 from __future__ import annotations
 
-import argparse
 import json
-import subprocess
-import sys
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
-from benchutil import fox_and_dense_room, timing
+from benchutil import ab_arguments, ab_rounds, fox_and_dense_room, timing
 
 WIDTH, HEIGHT, CHANNELS, DENSE_N = 640, 480, 512, 300_000
 VIEWS, RAYS = 4, 2048
@@ -120,12 +117,8 @@ def table(base: list[dict], this: list[dict], base_name: str) -> str:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--base", metavar="PYTHON", help="the interpreter of the other install")
+    ap = ab_arguments(__doc__.splitlines()[0], rounds=2, calls=2)
     ap.add_argument("--data", type=Path, help="folder with wakufactory-fox/fox.ply (else the dense room alone)")
-    ap.add_argument("--rounds", type=int, default=2, help="runs of each install, alternating")
-    ap.add_argument("--calls", type=int, default=2, help="timed calls per path and run, after a warm-up")
-    ap.add_argument("--worker", type=Path, help=argparse.SUPPRESS)   # scenes file: measure, print JSON
     args = ap.parse_args()
     if args.worker:
         print(json.dumps(measure_install(args.worker, args.calls)))
@@ -135,17 +128,8 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         scenes_file = Path(tmp) / "scenes.npz"
         print("scenes:", ", ".join(make_scenes(args.data, scenes_file)), flush=True)
-        runs = {"base": [], "this": []}
-        for r in range(args.rounds):
-            for label, python in (("base", args.base), ("this", sys.executable)):
-                cmd = [python, __file__, "--worker", str(scenes_file), "--calls", str(args.calls)]
-                proc = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp)
-                if proc.returncode:
-                    sys.exit(f"{label} run failed ({' '.join(cmd)}):\n{proc.stderr[-3000:]}")
-                runs[label].append(json.loads(proc.stdout.strip().splitlines()[-1]))
-                print(f"round {r + 1} {label}: " + "; ".join(
-                    f"{s} " + " ".join(f"{p} {v['min_s'] * 1e3:.0f}" for p, v in paths.items())
-                    for s, paths in runs[label][-1].items()), flush=True)
+        runs = ab_rounds(__file__, args.base, scenes_file, args.rounds, args.calls, lambda run: "; ".join(
+            f"{s} " + " ".join(f"{p} {v['min_s'] * 1e3:.0f}" for p, v in paths.items()) for s, paths in run.items()))
     print()
     print(table(runs["base"], runs["this"], args.base))
 

@@ -17,16 +17,13 @@ machine's of the moment; keep a report only with the machine named.
 """
 from __future__ import annotations
 
-import argparse
 import json
-import subprocess
-import sys
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
-from benchutil import timing
+from benchutil import ab_arguments, ab_rounds, timing
 
 WIDTH, HEIGHT, CHANNELS, DENSE_N, K = 320, 240, 512, 300_000, 40
 
@@ -78,31 +75,19 @@ def measure_install(scene_file: Path, calls: int) -> dict:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--base", metavar="PYTHON", help="the interpreter of the other install")
-    ap.add_argument("--rounds", type=int, default=3, help="runs of each install, alternating")
-    ap.add_argument("--calls", type=int, default=3, help="timed calls per run, after a warm-up")
-    ap.add_argument("--worker", type=Path, help=argparse.SUPPRESS)   # scene file: measure, print JSON
+    ap = ab_arguments(__doc__.splitlines()[0], rounds=3, calls=3)
     args = ap.parse_args()
     if args.worker:
         print(json.dumps(measure_install(args.worker, args.calls)))
         return
     if not args.base:
         ap.error("--base PYTHON is required")
-    runs = {"base": [], "this": []}
     with tempfile.TemporaryDirectory() as tmp:
         scene_file = Path(tmp) / "scene.npz"
         make_scene(scene_file)
-        for r in range(args.rounds):
-            for label, python in (("base", args.base), ("this", sys.executable)):
-                cmd = [python, __file__, "--worker", str(scene_file), "--calls", str(args.calls)]
-                proc = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp)
-                if proc.returncode:
-                    sys.exit(f"{label} run failed ({' '.join(cmd)}):\n{proc.stderr[-3000:]}")
-                runs[label].append(json.loads(proc.stdout.strip().splitlines()[-1]))
-                run = runs[label][-1]
-                print(f"round {r + 1} {label}: whole {run['whole_s'] * 1e3:.0f} ms, split {run['split_s'] * 1e3:.0f} ms, "
-                      f"copied {run['split_copied_bytes'] / 1e6:.0f} MB", flush=True)
+        runs = ab_rounds(__file__, args.base, scene_file, args.rounds, args.calls, lambda run: (
+            f"whole {run['whole_s'] * 1e3:.0f} ms, split {run['split_s'] * 1e3:.0f} ms, "
+            f"copied {run['split_copied_bytes'] / 1e6:.0f} MB"))
     best = {(label, key): min(r[key] for r in rs) for label, rs in runs.items() for key in ("whole_s", "split_s")}
     table_mb = runs["this"][0]["table_bytes"] / 1e6
     print(f"\nbase = {args.base}; dense room {DENSE_N // 1000}k, {WIDTH}x{HEIGHT}, C={CHANNELS} float32 "
