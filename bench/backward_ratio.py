@@ -88,7 +88,7 @@ def main() -> None:
             for k, parts in run(python, args.calls).items():
                 for part, times in parts.items():
                     best[name, k, part] = min(best.get((name, k, part), float("inf")), min(times))
-    print(f"| build | K | select ms | blend ms | forward ms | backward ms | backward / forward |")
+    print("| build | K | select ms | blend ms | forward ms | backward ms | backward / forward |")
     print("| --- | ---: | ---: | ---: | ---: | ---: | ---: |")
     for name in builds:
         for k in KS:

@@ -60,6 +60,18 @@ def ab_arguments(description: str, rounds: int, calls: int) -> argparse.Argument
     return ap
 
 
+def ab_parse(ap: argparse.ArgumentParser, measure: Callable[[Path, int], dict]) -> argparse.Namespace | None:
+    """The parsed options of an :func:`ab_arguments` parser; under ``--worker`` it prints the JSON
+    of ``measure(worker file, calls)`` (the install this process imports) and returns None."""
+    args = ap.parse_args()
+    if args.worker:
+        print(json.dumps(measure(args.worker, args.calls)))
+        return None
+    if not args.base:
+        ap.error("--base PYTHON is required")
+    return args
+
+
 def ab_rounds(script: str, base: str, inputs: Path, rounds: int, calls: int,
               describe: Callable[[dict], str]) -> dict[str, list[dict]]:
     """{"base": [...], "this": [...]}: the JSON that ``script --worker inputs --calls calls``

@@ -23,13 +23,12 @@ over rounds and calls of each, the speed-up, and each build's fused V-Render ove
 """
 from __future__ import annotations
 
-import json
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
-from benchutil import ab_arguments, ab_rounds, fox_and_dense_room, timing
+from benchutil import ab_arguments, ab_parse, ab_rounds, fox_and_dense_room, timing
 
 WIDTH, HEIGHT, CHANNELS, DENSE_N = 640, 480, 512, 300_000
 VIEWS, RAYS = 4, 2048
@@ -119,12 +118,9 @@ def table(base: list[dict], this: list[dict], base_name: str) -> str:
 def main() -> None:
     ap = ab_arguments(__doc__.splitlines()[0], rounds=2, calls=2)
     ap.add_argument("--data", type=Path, help="folder with wakufactory-fox/fox.ply (else the dense room alone)")
-    args = ap.parse_args()
-    if args.worker:
-        print(json.dumps(measure_install(args.worker, args.calls)))
+    args = ab_parse(ap, measure_install)
+    if args is None:
         return
-    if not args.base:
-        ap.error("--base PYTHON is required")
     with tempfile.TemporaryDirectory() as tmp:
         scenes_file = Path(tmp) / "scenes.npz"
         print("scenes:", ", ".join(make_scenes(args.data, scenes_file)), flush=True)

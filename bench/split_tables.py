@@ -17,13 +17,12 @@ machine's of the moment; keep a report only with the machine named.
 """
 from __future__ import annotations
 
-import json
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
-from benchutil import ab_arguments, ab_rounds, timing
+from benchutil import ab_arguments, ab_parse, ab_rounds, timing
 
 WIDTH, HEIGHT, CHANNELS, DENSE_N, K = 320, 240, 512, 300_000, 40
 
@@ -76,12 +75,9 @@ def measure_install(scene_file: Path, calls: int) -> dict:
 
 def main() -> None:
     ap = ab_arguments(__doc__.splitlines()[0], rounds=3, calls=3)
-    args = ap.parse_args()
-    if args.worker:
-        print(json.dumps(measure_install(args.worker, args.calls)))
+    args = ab_parse(ap, measure_install)
+    if args is None:
         return
-    if not args.base:
-        ap.error("--base PYTHON is required")
     with tempfile.TemporaryDirectory() as tmp:
         scene_file = Path(tmp) / "scene.npz"
         make_scene(scene_file)
