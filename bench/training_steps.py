@@ -22,6 +22,7 @@ import os
 import resource
 import statistics
 import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -56,7 +57,6 @@ def main() -> None:
     args, extra = parser.parse_known_args()            # the rest are qr-cl train options
     if args.long <= args.short:
         parser.error(f"--long ({args.long}) must exceed --short ({args.short})")
-    import sys
     installs = [p.split("=", 1) for p in (args.python or [f"this={sys.executable}"])]
     if any(len(p) != 2 for p in installs):
         parser.error("--python takes LABEL=PYTHON")

@@ -31,9 +31,7 @@ def cosine_logits(rendered: torch.Tensor, sizes: list[int], mask_features: list[
     its ``mask_features[v]`` [M_v,C]. Returns per view [P_v, M_v] = cos(ray, mask) / temperature,
     i.e. ``F.normalize(rendered_v, dim=1) @ mask_features[v].T / temperature``. The backward
     writes d rendered [P,C] into one pooled host array and allocates no other [P,C] array."""
-    if sum(sizes) != rendered.shape[0] or len(sizes) != len(mask_features):
-        raise ValueError(f"sizes {list(sizes)} must split the {rendered.shape[0]} rays among "
-                         f"{len(mask_features)} views")
+    _check_views(sizes, rendered.shape[0], len(mask_features))
     return _CosineLogits.apply(rendered, float(temperature), tuple(int(n) for n in sizes), *mask_features)
 
 
@@ -45,15 +43,19 @@ def head_cosine_logits(sums: torch.Tensor, head: torch.Tensor, sizes: list[int],
     ``sums . (head.T m)`` over its norm ``|R sums|`` (head = QR with Q's columns orthonormal, R
     [min(C, D), D]; a norm under 1e-12 taken as 1e-12, as F.normalize does), so the cost is
     O(P D (M + D)) instead of O(P C (D + M)): the [P,C] rays are never formed."""
-    if sum(sizes) != sums.shape[0] or len(sizes) != len(mask_features):
-        raise ValueError(f"sizes {list(sizes)} must split the {sums.shape[0]} rays among "
-                         f"{len(mask_features)} views")
+    _check_views(sizes, sums.shape[0], len(mask_features))
     if head.ndim != 2 or head.shape[1] != sums.shape[1]:
         raise ValueError(f"head {tuple(head.shape)} must be [C, {sums.shape[1]}] for sums {tuple(sums.shape)}")
     r = torch.linalg.qr(head).R
     inv = torch.linalg.vector_norm(sums @ r.T, dim=1, keepdim=True).clamp_min(1e-12).reciprocal()
     return tuple(s @ (m @ head).T * i / temperature
                  for s, i, m in zip(sums.split(sizes), inv.split(sizes), mask_features))
+
+
+def _check_views(sizes: list[int], rays: int, views: int) -> None:
+    """ValueError unless ``sizes`` split ``rays`` rays among ``views`` views."""
+    if sum(sizes) != rays or len(sizes) != views:
+        raise ValueError(f"sizes {list(sizes)} must split the {rays} rays among {views} views")
 
 
 class _CosineLogits(torch.autograd.Function):
