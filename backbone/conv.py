@@ -55,23 +55,26 @@ _arena = threading.local()
 _lock = threading.Lock()
 _threads = 1
 _helpers: ThreadPoolExecutor | None = None
-_helper_count = 0
+_helper_setup = (0, 0)      # (helpers, torch intra-op threads) of the running helpers
 
 
 def set_conv_threads(threads: int) -> None:
     """Run sparse convolutions on ``threads`` threads: the calling one and ``threads - 1`` helpers
-    (at most :data:`SPLIT` are used). Results do not depend on it. Each thread runs torch with
-    its intra-op thread count, so ``threads * torch.get_num_threads()`` should not exceed the cores."""
-    global _threads, _helpers, _helper_count
+    (at most :data:`SPLIT` are used). Results do not depend on it. Each helper runs torch with the
+    caller's intra-op thread count at this call (a new thread would otherwise take OpenMP's
+    default, every core), so ``threads * torch.get_num_threads()`` should not exceed the cores."""
+    global _threads, _helpers, _helper_setup
     if threads < 1:
         raise ValueError(f"threads must be >= 1, got {threads}")
     with _lock:
         helpers = min(threads, SPLIT) - 1
-        if helpers != _helper_count:
+        setup = (helpers, torch.get_num_threads() if helpers else 0)
+        if setup != _helper_setup:
             if _helpers is not None:
                 _helpers.shutdown(wait=True)
-            _helpers = ThreadPoolExecutor(helpers, thread_name_prefix="qr-cl-conv") if helpers else None
-            _helper_count = helpers
+            _helpers = ThreadPoolExecutor(helpers, thread_name_prefix="qr-cl-conv", initializer=torch.set_num_threads,
+                                          initargs=(setup[1],)) if helpers else None
+            _helper_setup = setup
         _threads = threads
 
 

@@ -1,6 +1,9 @@
 """Sparse convolutions of backbone.conv against torch.nn.functional.conv3d on dense grids, and split
 over threads: bitwise the same on 1 or 2 threads and run to run."""
 
+import os
+import subprocess
+import sys
 import threading
 
 import pytest
@@ -264,3 +267,24 @@ def test_conv_threads_are_set_and_restored():
     assert get_conv_threads() == before
     with pytest.raises(ValueError, match="threads"):
         set_conv_threads(0)
+
+
+def test_a_helper_runs_torch_on_the_callers_intra_op_threads():
+    """A fresh process with one torch thread: the helper's products start no OpenMP team (a new
+    thread's first torch op took OpenMP's default, every core, so two helpers' cores each)."""
+    script = """
+import os, torch
+torch.set_num_threads(1)
+from qr_cl.backbone import conv
+a, b = torch.randn(2000, 48), torch.randn(48, 48)     # a convolution's product at one offset
+with conv.conv_threads(2):
+    conv._helpers.submit(int).result()
+    before = len(os.listdir("/proc/self/task"))
+    conv._helpers.submit(lambda: [torch.mm(a, b) for _ in range(200)]).result()   # no torch call before
+    print(len(os.listdir("/proc/self/task")) - before)
+"""
+    if not os.path.isdir("/proc/self/task"):
+        pytest.skip("needs /proc to count threads")
+    run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert run.stdout.split() == ["0"], f"threads started by the helper's products: {run.stdout}"
