@@ -1,6 +1,7 @@
 """The render check a device passes before qr-cl renders on it: a tiny scene through every
-sampler (forward and feature backward), a float16 table through Q-Render and the fused V-Render,
-against the float64 twins.
+sampler (forward and feature backward), a table read in row parts (as one larger than the device's
+largest buffer is) and a float16 table through Q-Render, and the fused V-Render, against the
+float64 twins.
 
 It catches drivers that build and run the kernels but compute something else (the loop probe of
 :func:`qr_cl.runtime.trial_run` catches loops ended early). A device that fails is refused with
@@ -28,6 +29,9 @@ from ..stages import blend_ref, select_ref, vrender_ref
 
 #: The check scene: Gaussians, image size (px), channels, K of the K samplers.
 N_GAUSSIANS, WIDTH, HEIGHT, CHANNELS, K = 160, 40, 24, 24, 5
+#: The table rendered with the device's buffers capped to a third of it (three row parts, ray
+#: sets of about 53 rays): its channels, and every how many pixels a ray is drawn.
+WIDE_CHANNELS, PIXEL_STEP = 256, 7
 #: A pixel differs when its largest channel error exceeds this fraction of the image's largest
 #: value; a few may (rays whose transmittance meets a boundary at float rounding), no more.
 PIXEL_RTOL, DIFFERING_PIXELS = 1e-3, 0.02
@@ -62,6 +66,30 @@ def _differing(got: np.ndarray, want: np.ndarray) -> float:
     return float(np.mean(np.abs(got - want).max(axis=1) > PIXEL_RTOL * scale))
 
 
+def _sampler_failures(label: str, geometry, features: np.ndarray, grad: np.ndarray, cam, sampler: str,
+                      pixels: np.ndarray | None = None) -> list[str]:
+    """Render ``features`` [N, C] with ``sampler`` at ``pixels`` (None: the whole image) forward and
+    the feature gradient of sum(image * grad) backward; what of the two differs from the twins."""
+    from .engine import image_pixels                                     # the renderers use this module
+    from .rasterize import rasterize
+    f = torch.from_numpy(features).requires_grad_(True)
+    image, _, meta = rasterize(*geometry, f, cam.viewmat, cam.K, WIDTH, HEIGHT, sampler=sampler, k=K, pixels=pixels)
+    image = image.reshape(-1, features.shape[1])
+    (image * torch.from_numpy(grad)).sum().backward()
+    rays = image_pixels(WIDTH, HEIGHT) if pixels is None else pixels
+    twin = select_ref.select(meta, meta["tile_ranges"], meta["flatten_ids"], rays, WIDTH, sampler, K)
+    want = blend_ref.blend(twin["ids"], twin["weights"], features)
+    want_grad = np.zeros(features.shape)
+    valid = twin["ids"] >= 0
+    np.add.at(want_grad, twin["ids"][valid], twin["weights"][valid][:, None] * grad[np.nonzero(valid)[0]])
+    failures = []
+    for what, got, ref in (("image", image.detach().numpy(), want), ("feature gradient", f.grad.numpy(), want_grad)):
+        share = _differing(got, ref)
+        if share > DIFFERING_PIXELS:
+            failures.append(f"{label} {what}: {share:.0%} of its rows differ from the float64 twin")
+    return failures
+
+
 def render_check() -> list[str]:
     """Render the check scene on the process's runtime; returns what differed from the twins
     (empty when the device passed)."""
@@ -71,19 +99,14 @@ def render_check() -> list[str]:
     pixels = image_pixels(WIDTH, HEIGHT)
     failures = []
     for sampler in SAMPLERS:
-        f = torch.from_numpy(features).requires_grad_(True)
-        image, _, meta = rasterize(*geometry, f, cam.viewmat, cam.K, WIDTH, HEIGHT, sampler=sampler, k=K)
-        (image.reshape(-1, CHANNELS) * torch.from_numpy(grad)).sum().backward()
-        twin = select_ref.select(meta, meta["tile_ranges"], meta["flatten_ids"], pixels, WIDTH, sampler, K)
-        want = blend_ref.blend(twin["ids"], twin["weights"], features)
-        want_grad = np.zeros(features.shape)
-        valid = twin["ids"] >= 0
-        np.add.at(want_grad, twin["ids"][valid], twin["weights"][valid][:, None] * grad[np.nonzero(valid)[0]])
-        for what, got, ref in (("image", image.detach().numpy().reshape(-1, CHANNELS), want),
-                               ("feature gradient", f.grad.numpy(), want_grad)):
-            share = _differing(got, ref)
-            if share > DIFFERING_PIXELS:
-                failures.append(f"{sampler} {what}: {share:.0%} of its rows differ from the float64 twin")
+        failures += _sampler_failures(sampler, geometry, features, grad, cam, sampler)
+    rng = np.random.default_rng(8)                                   # a table read in row parts
+    wide = rng.normal(size=(N_GAUSSIANS, WIDE_CHANNELS)).astype(np.float32)
+    some = pixels[::PIXEL_STEP]
+    with runtime().capped_buffers(wide.strides[0] * -(-N_GAUSSIANS // 3)):
+        failures += _sampler_failures(f"quantile, a table in row parts ({WIDE_CHANNELS} channels),", geometry, wide,
+                                      rng.normal(size=(len(some), WIDE_CHANNELS)).astype(np.float32), cam,
+                                      "quantile", some)
     half = features.astype(np.float16)                               # read as half (vload_half)
     image, _, meta = rasterize(*geometry, half, cam.viewmat, cam.K, WIDTH, HEIGHT, sampler="quantile", k=K)
     twin = select_ref.select(meta, meta["tile_ranges"], meta["flatten_ids"], pixels, WIDTH, "quantile", K)

@@ -11,9 +11,11 @@ import os
 import re
 import threading
 import warnings
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from functools import lru_cache
 from importlib import resources
+from typing import Iterator
 
 import numpy as np
 import pyopencl as cl
@@ -243,6 +245,9 @@ class Runtime:
     sizes, device sorts, many-work-item transposes) rather than CPU-shaped work (host sorts, a
     few long work-items); set from :func:`gpu_shapes` when the Runtime is created, and settable
     (that is how tests run both shapes on one device).
+    ``buffer_cap``: when set, bytes that :attr:`max_buffer_bytes` reports at most, so that tables
+    and ray sets are split as on a device with smaller buffers (the render check splits a table
+    on every device with it; see :meth:`capped_buffers`).
     """
 
     device: cl.Device
@@ -250,6 +255,7 @@ class Runtime:
     queue: cl.CommandQueue = field(init=False)
     pool: cl_tools.MemoryPool = field(init=False, repr=False)
     gpu_shaped: bool = field(init=False)
+    buffer_cap: int | None = field(init=False, default=None)
     _programs: dict = field(init=False, default_factory=dict)
     _build_lock: threading.Lock = field(init=False, default_factory=threading.Lock, repr=False)
     _launch_lock: threading.Lock = field(init=False, default_factory=threading.Lock, repr=False)
@@ -262,8 +268,20 @@ class Runtime:
 
     @property
     def max_buffer_bytes(self) -> int:
-        """The largest single buffer this device allows (CL_DEVICE_MAX_MEM_ALLOC_SIZE), bytes."""
-        return int(self.device.max_mem_alloc_size)
+        """The largest single buffer this device allows (CL_DEVICE_MAX_MEM_ALLOC_SIZE), bytes, or
+        :attr:`buffer_cap` where that is smaller."""
+        limit = int(self.device.max_mem_alloc_size)
+        return limit if self.buffer_cap is None else min(limit, self.buffer_cap)
+
+    @contextmanager
+    def capped_buffers(self, nbytes: int) -> Iterator[None]:
+        """Within the block, plan buffers as if the device allowed at most ``nbytes`` in one
+        (:attr:`buffer_cap`); the previous cap is restored after."""
+        old, self.buffer_cap = self.buffer_cap, nbytes
+        try:
+            yield
+        finally:
+            self.buffer_cap = old
 
     @property
     def is_cpu(self) -> bool:

@@ -77,6 +77,30 @@ def test_a_device_misreading_half_rows_is_refused(monkeypatch, tmp_path):
     assert "quantile image of a float16 table" in str(err.value) and "gradient" not in str(err.value)
 
 
+def test_a_device_misreading_row_parts_is_refused(monkeypatch, tmp_path):
+    """A driver whose blend reads a table part's rows as the table's first ones (row0 taken as 0)
+    renders tables larger than its buffers wrong: the check reads its wide table in three row parts."""
+    monkeypatch.setenv("QR_CL_CACHE", str(tmp_path))
+    monkeypatch.setattr(selfcheck, "_PASSED", set())
+    rt = runtime()
+    launch = type(rt).launch
+    parts = []
+
+    def misread(self, name, *args, **kwargs):
+        if name == "blend" and kwargs.get("row0"):
+            parts.append(kwargs["row0"])
+            kwargs["row0"] = 0
+        launch(self, name, *args, **kwargs)
+    monkeypatch.setattr(type(rt), "launch", misread)
+    with pytest.raises(selfcheck.DeviceCheckError) as err:
+        selfcheck.checked_runtime()
+    message = str(err.value)
+    assert "quantile, a table in row parts (256 channels), image" in message, message
+    assert "gradient" not in message and "float16" not in message, message
+    assert set(parts) == {54, 108}, parts                 # 160 rows in parts of 54, 54 and 52
+    assert rt.buffer_cap is None                          # the cap ends with the check
+
+
 def test_self_check_setting_is_validated(monkeypatch):
     monkeypatch.setenv("QR_CL_SELF_CHECK", "maybe")
     with pytest.raises(ValueError, match="QR_CL_SELF_CHECK='maybe': use on or off"):
