@@ -88,3 +88,16 @@ def test_scale_sweep_measures_every_stage_and_memory_against_n(tmp_path, capsys)
     half = json.loads((tmp_path / "cli" / "scale.json").read_text())
     assert half["table_dtype"] == "float16" and half["memory"][0]["table_bytes"] == half["memory"][0]["n_gaussians"] * 1024
     assert {r.get("table_dtype") for r in half["rows"] if r["stage"] in ("blend-forward", "end-to-end")} == {"float16"}
+
+
+def test_scale_report_names_the_channels_of_blend_rows_that_time_fewer():
+    """At 4 GiB a 3M x 512 float32 table does not fit one buffer, so the blend rows time C=256
+    there: the table and the plot's blend labels say so."""
+    from qr_cl.app.bench import scale
+    rows = [{"n_gaussians": n, "stage": "blend-forward", "channels": c, "min_s": 0.1} for n, c in ((10, 512), (30, 256))]
+    report = {"k": 40, "channels": 512, "size": [64, 48], "rows": rows,
+              "memory": [{"n_gaussians": n, "peak_bytes": 1, "table_bytes": 1} for n in (10, 30)]}
+    assert scale.blend_channels(report) == {10: 512, 30: 256}
+    assert "C = 512 at N=10, 256 at N=30" in scale.scale_markdown(report)
+    assert [scale.stage_label(report, s) for s in ("blend-forward", "blend-backward", "selection")] == [
+        "blend-forward (C=256 at N=30)", "blend-backward (C=256 at N=30)", "selection"]

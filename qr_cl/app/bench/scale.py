@@ -81,11 +81,16 @@ def _ms(rows: list[dict], n: int, stage: str) -> float | None:
     return None if row is None else 1e3 * row["min_s"]
 
 
+def blend_channels(report: dict) -> dict[int, int]:
+    """N -> the channels the blend rows of ``report`` timed at N (:func:`stage_channels`)."""
+    return {m["n_gaussians"]: next((r["channels"] for r in report["rows"] if r["n_gaussians"] == m["n_gaussians"]
+                                    and r["stage"] == "blend-forward"), report["channels"]) for m in report["memory"]}
+
+
 def scale_markdown(report: dict) -> str:
     """The scale table: ms per stage and peak memory against N, and each against the smallest N."""
     ns = [m["n_gaussians"] for m in report["memory"]]
-    blend_c = {n: next((r["channels"] for r in report["rows"] if r["n_gaussians"] == n and r["stage"] == "blend-forward"),
-                       report["channels"]) for n in ns}
+    blend_c = blend_channels(report)
     w, h = report["size"]
     dtype = report.get("table_dtype", "float32")
     lines = [f"# Cost against the number of Gaussians (dense room, {w}x{h}, Q-Render K={report['k']}, "
@@ -122,22 +127,32 @@ def scale_markdown(report: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def stage_label(report: dict, stage: str) -> str:
+    """The plot's label of ``stage``: its name, with the channels where its rows time fewer than
+    the report's (the blend rows of a table that fits one buffer, :func:`stage_channels`)."""
+    fewer = {n: c for n, c in blend_channels(report).items() if c != report["channels"]}
+    if not fewer or not stage.startswith("blend"):
+        return stage
+    return f"{stage} (" + ", ".join(f"C={c} at N={n:,}" for n, c in fewer.items()) + ")"
+
+
 def plot_scale(report: dict, path: Path) -> None:
-    """ms per stage against N, log-log, with the O(N) slope for reference."""
+    """ms per stage against N, log-log, with the O(N) slope for reference; blend rows that time
+    fewer channels at some N (a table that fits one buffer) say so in their label."""
     ns = [m["n_gaussians"] for m in report["memory"]]
-    fig, ax = plt.subplots(figsize=(6.5, 4.5))
+    fig, ax = plt.subplots(figsize=(9, 4.5))
     for stage in STAGES:
         pts = [(n, _ms(report["rows"], n, stage)) for n in ns]
         pts = [p for p in pts if p[1] is not None]
         if pts:
-            ax.plot(*zip(*pts), "o-", label=stage)
+            ax.plot(*zip(*pts), "o-", label=stage_label(report, stage))
     first = _ms(report["rows"], ns[0], "projection")
     if first:
         ax.plot(ns, [first * n / ns[0] for n in ns], ":", color="gray", label="O(N) from projection")
     ax.set(xscale="log", yscale="log", xlabel="Gaussians N", ylabel="ms (min over rounds)",
            title=f"dense room {report['size'][0]}x{report['size'][1]}, Q-Render K={report['k']}, "
                  f"C={report['channels']} {report.get('table_dtype', 'float32')}")
-    ax.legend(fontsize=7)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1))      # beside the lines, never on them
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
