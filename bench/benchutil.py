@@ -89,3 +89,11 @@ def ab_rounds(script: str, base: str, inputs: Path, rounds: int, calls: int,
             runs[label].append(json.loads(proc.stdout.strip().splitlines()[-1]))
             print(f"round {r + 1} {label}: {describe(runs[label][-1])}", flush=True)
     return runs
+
+
+def print_table(table: str, out: Path | None) -> None:
+    """Print a Markdown table and, when ``out`` is given, write it there (folders made)."""
+    print(table)
+    if out:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(table + "\n")

@@ -27,6 +27,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from benchutil import print_table
+
 
 def run_train(python: str, room: str, steps: int, extra: list[str]) -> tuple[float, float]:
     """(wall s, CPU s of the child) of ``qr-cl train room --steps steps`` under ``python`` (the
@@ -79,11 +81,7 @@ def main() -> None:
         cores = statistics.median(c for _, c in results[label])
         lines.append(f"| {label} | {statistics.median(ms):.1f} | {', '.join(f'{m:.1f}' for m in ms)} | {cores:.2f} | "
                      f"{first / statistics.median(ms):.2f}x |")
-    table = "\n".join(lines)
-    print(table)
-    if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(table + "\n")
+    print_table("\n".join(lines), args.out)
 
 
 if __name__ == "__main__":

@@ -25,7 +25,7 @@ import threading
 import time
 from pathlib import Path
 
-
+from benchutil import print_table
 from qr_cl.app.process import cap_kernel_threads, keep_freed_memory, torch_threads
 from qr_cl.app.training.config import TrainConfig
 from qr_cl.app.training.trainer import Trainer, conv_thread_count
@@ -114,11 +114,7 @@ def main() -> None:
                            ("convolutions that run whole (small maps)", clock.whole),
                            ("everything else (the helper idle)", rest)):
         lines.append(f"| {label} | {seconds * ms:.1f} | {seconds / wall:.2f} |")
-    table = "\n".join(lines)
-    print(table)
-    if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(table + "\n")
+    print_table("\n".join(lines), args.out)
 
 
 if __name__ == "__main__":
