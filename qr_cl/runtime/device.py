@@ -245,9 +245,9 @@ class Runtime:
     sizes, device sorts, many-work-item transposes) rather than CPU-shaped work (host sorts, a
     few long work-items); set from :func:`gpu_shapes` when the Runtime is created, and settable
     (that is how tests run both shapes on one device).
-    ``buffer_cap``: when set, bytes that :attr:`max_buffer_bytes` reports at most, so that tables
-    and ray sets are split as on a device with smaller buffers (the render check splits a table
-    on every device with it; see :meth:`capped_buffers`).
+    :meth:`capped_buffers` makes :attr:`max_buffer_bytes` report less on the calling thread, so
+    that its tables and ray sets are split as on a device with smaller buffers (the render check
+    splits a table on every device with it; other threads' renders are not affected).
     """
 
     device: cl.Device
@@ -255,7 +255,7 @@ class Runtime:
     queue: cl.CommandQueue = field(init=False)
     pool: cl_tools.MemoryPool = field(init=False, repr=False)
     gpu_shaped: bool = field(init=False)
-    buffer_cap: int | None = field(init=False, default=None)
+    _caps: threading.local = field(init=False, default_factory=threading.local, repr=False)
     _programs: dict = field(init=False, default_factory=dict)
     _build_lock: threading.Lock = field(init=False, default_factory=threading.Lock, repr=False)
     _launch_lock: threading.Lock = field(init=False, default_factory=threading.Lock, repr=False)
@@ -269,19 +269,24 @@ class Runtime:
     @property
     def max_buffer_bytes(self) -> int:
         """The largest single buffer this device allows (CL_DEVICE_MAX_MEM_ALLOC_SIZE), bytes, or
-        :attr:`buffer_cap` where that is smaller."""
+        the calling thread's :attr:`buffer_cap` where that is smaller."""
         limit = int(self.device.max_mem_alloc_size)
         return limit if self.buffer_cap is None else min(limit, self.buffer_cap)
 
+    @property
+    def buffer_cap(self) -> int | None:
+        """The calling thread's cap on :attr:`max_buffer_bytes` (:meth:`capped_buffers`), or None."""
+        return getattr(self._caps, "nbytes", None)
+
     @contextmanager
     def capped_buffers(self, nbytes: int) -> Iterator[None]:
-        """Within the block, plan buffers as if the device allowed at most ``nbytes`` in one
-        (:attr:`buffer_cap`); the previous cap is restored after."""
-        old, self.buffer_cap = self.buffer_cap, nbytes
+        """Within the block, this thread plans buffers as if the device allowed at most ``nbytes``
+        in one; the previous cap is restored after."""
+        old, self._caps.nbytes = self.buffer_cap, nbytes
         try:
             yield
         finally:
-            self.buffer_cap = old
+            self._caps.nbytes = old
 
     @property
     def is_cpu(self) -> bool:

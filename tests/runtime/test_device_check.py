@@ -1,6 +1,8 @@
 """A device is used only after its self-check: the loop probe (drivers that end long loops early
 without an error, as Mesa 22's llvmpipe does) and the render check against the float64 twins.
 Failing devices are refused with a message naming the implementation and what failed."""
+import threading
+
 import pytest
 
 from qr_cl.render import selfcheck
@@ -99,6 +101,23 @@ def test_a_device_misreading_row_parts_is_refused(monkeypatch, tmp_path):
     assert "gradient" not in message and "float16" not in message, message
     assert set(parts) == {54, 108}, parts                 # 160 rows in parts of 54, 54 and 52
     assert rt.buffer_cap is None                          # the cap ends with the check
+
+
+def test_a_buffer_cap_holds_on_its_own_thread_only():
+    """The render check caps the buffers on its thread; a render on another thread meanwhile
+    plans with the device's own limit."""
+    rt = runtime()
+    limit = rt.max_buffer_bytes
+    seen = []
+    with rt.capped_buffers(4096):
+        assert rt.max_buffer_bytes == 4096
+        other = threading.Thread(target=lambda: seen.append(rt.max_buffer_bytes))
+        other.start()
+        other.join()
+        with rt.capped_buffers(1024):
+            assert rt.max_buffer_bytes == 1024
+        assert rt.max_buffer_bytes == 4096
+    assert seen == [limit] and rt.max_buffer_bytes == limit and rt.buffer_cap is None
 
 
 def test_self_check_setting_is_validated(monkeypatch):
