@@ -30,7 +30,7 @@ from ..stages import blend_ref, select_ref, vrender_ref
 #: The check scene: Gaussians, image size (px), channels, K of the K samplers.
 N_GAUSSIANS, WIDTH, HEIGHT, CHANNELS, K = 160, 40, 24, 24, 5
 #: The table rendered with the device's buffers capped to a third of it (three row parts, ray
-#: sets of about 53 rays): its channels, and every how many pixels a ray is drawn.
+#: sets of 54 rays): its channels, and every how many pixels a ray is drawn.
 WIDE_CHANNELS, PIXEL_STEP = 256, 7
 #: A pixel differs when its largest channel error exceeds this fraction of the image's largest
 #: value; a few may (rays whose transmittance meets a boundary at float rounding), no more.
