@@ -470,7 +470,7 @@ def finish_child(child: Child, timeout: float = 600) -> tuple[subprocess.Complet
 @pytest.fixture(scope="module")
 def clean_runs(tmp_path_factory) -> Iterator[dict[str, Child]]:
     """Both checking runs (:data:`MODES`), started at once on first use: oclgrind simulates on one
-    core, so on two cores the second run costs no wall time."""
+    core, so on two cores the second run costs little wall time."""
     if oclgrind_icd() is None:
         pytest.skip("oclgrind is not installed (apt-get install oclgrind)")
     runs = {mode: start_child(mode, tmp_path_factory.mktemp(f"oclgrind-{mode}")) for mode in MODES}

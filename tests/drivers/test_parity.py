@@ -218,9 +218,15 @@ def test_kernel_tests_pass_on_intel(tmp_path, data_dir):
                    *(f"--deselect=tests/{t}" for t in KERNEL_TESTS_LEFT_OUT), *(str(tests / t) for t in group)]
         children.append(subprocess.Popen(command, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                          text=True, cwd=tests.parent))
-    for child in children:
-        out, _ = child.communicate(timeout=900)
-        assert child.returncode == 0, out[-4000:]
+    try:
+        outputs = [child.communicate(timeout=900)[0] for child in children]
+    finally:
+        for child in children:
+            if child.poll() is None:
+                child.kill()
+                child.wait()
+    failed = [out[-4000:] for child, out in zip(children, outputs) if child.returncode]
+    assert not failed, "\n\n".join(failed)
 
 
 @pytest.fixture(scope="module")
