@@ -124,10 +124,11 @@ def render_check() -> list[str]:
 
 def _record(rt: Runtime) -> Path:
     """Where a pass of ``rt``'s device is remembered: keyed by the implementation, the launch
-    shapes and every kernel source and build constant."""
+    shapes, every kernel source and build constant, and this check's own source (a pass of an
+    earlier check, which rendered less, is not taken for one of this)."""
     key = hashlib.sha256()
     for part in (implementation(rt.device), str(rt.gpu_shaped), str(rt.accumulator_floats),
-                 json.dumps(KERNEL_CONSTANTS, sort_keys=True),
+                 json.dumps(KERNEL_CONSTANTS, sort_keys=True), Path(__file__).read_text(),
                  *(kernel_source(f) for f in sorted(set(kernel_files().values())))):
         key.update(part.encode())
     root = Path(os.environ.get("QR_CL_CACHE", Path.home() / ".cache" / "qr-cl")) / "checks"

@@ -2,6 +2,7 @@
 without an error, as Mesa 22's llvmpipe does) and the render check against the float64 twins.
 Failing devices are refused with a message naming the implementation and what failed."""
 import threading
+from pathlib import Path
 
 import pytest
 
@@ -34,6 +35,17 @@ def test_the_render_check_passes_here_and_is_remembered(monkeypatch, tmp_path):
     monkeypatch.setattr(selfcheck, "_PASSED", set())
     monkeypatch.setattr(selfcheck, "render_check", lambda: pytest.fail("a remembered pass is checked again"))
     assert selfcheck.checked_runtime() is runtime()
+
+
+def test_a_pass_of_another_check_is_not_taken_for_one_of_this(monkeypatch, tmp_path):
+    """The record of a pass is keyed by the check's own source too: a device that passed an earlier
+    check (rendering less) is checked again."""
+    rt = runtime()
+    here = selfcheck._record(rt)
+    edited = tmp_path / "selfcheck.py"
+    edited.write_text(Path(selfcheck.__file__).read_text() + "\n# one more render\n")
+    monkeypatch.setattr(selfcheck, "__file__", str(edited))
+    assert selfcheck._record(rt) != here
 
 
 def test_a_device_rendering_wrong_rays_is_refused(monkeypatch, tmp_path):
