@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from ..runtime import (channel_layout, check_channels, device_empty, device_rows, host_empty, row_parts, shared_array,
-                       to_device)
+                       table_parts, to_device)
 from ..stages.binning import RasterPlan
 from ..stages.blend import (blend_backward, blend_backward_alpha, blend_forward, rows_to_half, splat_backward,
                             weight_grads)
@@ -93,9 +93,8 @@ def _blend_image(sel: Selection, features: torch.Tensor, background: torch.Tenso
     table = table_rows(features)
     host, image = _output(sel.n_rays, channels, cstride)
     with shared_array(rt, host, "w") as out:
-        for i, (r0, r1) in enumerate(row_parts(rt, len(table), cstride, table.itemsize)):
-            with device_rows(rt, table[r0:r1], cstride) as rows:
-                blend_forward(sel, rows, channels, None if i else bg, out=out, row0=r0, accumulate=i > 0)
+        for r0, rows in table_parts(rt, table, cstride):
+            blend_forward(sel, rows, channels, None if r0 else bg, out=out, row0=r0, accumulate=r0 > 0)
     return image.to(image_dtype(features))
 
 
@@ -272,9 +271,8 @@ def _splat_grads(sel: Selection, features: torch.Tensor, background: torch.Tenso
     table = table_rows(features)
     d_w = device_empty(rt, sel.ids.shape, np.float32)
     with device_rows(rt, host_rows(grad_image), cstride) as dimage:
-        for r0, r1 in row_parts(rt, len(table), cstride, table.itemsize):
-            with device_rows(rt, table[r0:r1], cstride) as rows:
-                weight_grads(sel, rows, dimage, channels, row0=r0, out=d_w)
+        for r0, rows in table_parts(rt, table, cstride):
+            weight_grads(sel, rows, dimage, channels, row0=r0, out=d_w)
     return splat_backward(sel, blend_backward_alpha(sel, d_w, d_trem)).get()
 
 

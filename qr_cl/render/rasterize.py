@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..runtime import channel_layout, check_buffer, device_rows, host_empty, row_parts, trim_device_pool
+from ..runtime import channel_layout, check_buffer, host_empty, table_parts, trim_device_pool
 from ..stages.binning import RenderMeta
 from ..stages.select import check_pixels, check_sampler
 from ..stages.vrender import render_fused
@@ -156,9 +156,8 @@ def render_volume_fused(means, quats, scales, opacities, features, viewmat, K, w
     check_buffer(plan.runtime, 4 * height * width * cstride, f"the fused V-Render image of {width}x{height} "
                  f"px x {cstride} channels (rasterize(..., sampler='volume') renders it in chunks)")
     table, out = table_rows(feats), host_empty((height, width, cstride))
-    for i, (r0, r1) in enumerate(row_parts(plan.runtime, len(table), cstride, table.itemsize)):
-        with device_rows(plan.runtime, table[r0:r1], cstride) as rows:   # a table beyond a buffer: row parts
-            image, alpha, depth = render_fused(plan, rows, channels, None if i or bg is None else bg.numpy(), out=out,
-                                               row0=r0, accumulate=i > 0)
+    for r0, rows in table_parts(plan.runtime, table, cstride):           # a table beyond a buffer: row parts
+        image, alpha, depth = render_fused(plan, rows, channels, None if r0 or bg is None else bg.numpy(), out=out,
+                                           row0=r0, accumulate=r0 > 0)
     trim_device_pool(plan.runtime)
     return torch.from_numpy(image), torch.from_numpy(alpha), RenderMeta(plan, depth=depth)

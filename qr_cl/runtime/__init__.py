@@ -5,11 +5,12 @@ from .constants import ALPHA_MAX, ALPHA_MIN, MAX_CHANNELS, SAMPLERS, SH_C0, T_MI
 from .device import BLOCK_GROUP, NoDeviceError, Runtime, choose_device, device_kind, list_devices, runtime, trial_run
 from .memory import (BufferLimitError, HostMemoryError, HostPool, channel_layout, check_buffer, check_channels, device_empty,
                      device_rows, device_zeros, exclusive_scan, host_empty, host_pool, last_value,
-                     padded_rows, padded_vector, row_parts, shared_array, streamed, to_device, trim_device_pool)
+                     padded_rows, padded_vector, row_parts, shared_array, streamed, table_parts, to_device,
+                     trim_device_pool)
 
 __all__ = ["ALPHA_MAX", "BLOCK_GROUP", "ALPHA_MIN", "MAX_CHANNELS", "SAMPLERS", "SH_C0", "T_MIN", "TILE",
            "BufferLimitError", "HostMemoryError", "HostPool", "NoDeviceError", "Runtime", "check_buffer", "channel_layout",
            "check_channels", "choose_device", "device_empty", "device_kind", "device_rows", "device_zeros",
            "exclusive_scan", "host_empty", "host_pool", "last_value", "list_devices",
-           "padded_rows", "padded_vector", "row_parts", "runtime", "shared_array", "streamed", "to_device", "trim_device_pool",
+           "padded_rows", "padded_vector", "row_parts", "runtime", "shared_array", "streamed", "table_parts", "to_device", "trim_device_pool",
            "trial_run"]

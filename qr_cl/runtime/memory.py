@@ -14,7 +14,8 @@ allocates (and page-faults) nothing:
   after every command enqueued on the old one. :func:`trim_device_pool` bounds what it holds.
 * host memory the kernels read or write: :func:`shared_array` (any C-contiguous array; ``"r"``
   read-only, ``"w"`` written, ``"rw"``) and :func:`device_rows` (feature rows, padded to cstride
-  only when they have to be; a table too large for one buffer in :func:`row_parts`). On a
+  only when they have to be; a table too large for one buffer in :func:`row_parts`, each
+  part's rows by :func:`table_parts`). On a
   device that shares host memory (``rt.host_unified``: CPU devices) they wrap the host array in a
   USE_HOST_PTR buffer (no copy); elsewhere they copy through a pooled device array.
 * large host outputs: :func:`host_empty` takes arrays from the process-wide :class:`HostPool`,
@@ -283,6 +284,14 @@ def row_parts(rt: Runtime, n: int, cstride: int, itemsize: int = 4) -> list[tupl
     parts = -(-n // (rt.max_buffer_bytes // row_bytes))
     step = -(-n // parts)
     return [(r, min(r + step, n)) for r in range(0, n, step)]
+
+
+def table_parts(rt: Runtime, table: np.ndarray, cstride: int) -> Iterator[tuple[int, cla.Array]]:
+    """Each row part of ``table`` [N, C] (:func:`row_parts`) as (its first row r0, its rows as
+    :func:`device_rows`), one at a time: one (0, all rows) when the table fits one buffer."""
+    for r0, r1 in row_parts(rt, len(table), cstride, table.itemsize):
+        with device_rows(rt, table[r0:r1], cstride) as rows:
+            yield r0, rows
 
 
 # ----------------------------------------------------------------------------------------------

@@ -40,6 +40,12 @@ def _check_part(sel: Selection, row0: int, n_rows: int, name: str) -> None:
                          f"{row0 + n_rows})")
 
 
+def _check_entries(array: cla.Array, sel: Selection, name: str) -> None:
+    """ValueError unless ``array`` is float32 with one value per selection entry (``sel.ids``'s shape)."""
+    if array.shape != sel.ids.shape or array.dtype != np.float32:
+        raise ValueError(f"{name} must be float32 {sel.ids.shape} (an entry's), got {array.dtype} {array.shape}")
+
+
 def row_defines(features: cla.Array) -> dict:
     """The build defines of a kernel that reads the feature table ``features``: ``HALF_ROWS``
     for a float16 table (read as half, blended in float: kernels/common.h), none for float32."""
@@ -219,8 +225,7 @@ def weight_grads(sel: Selection, features: cla.Array, dimage: cla.Array, channel
     _check_rows(features, features.shape[0], cstride, "features", half=True)
     _check_rows(dimage, sel.n_rays, cstride, "dimage")
     d_w = device_empty(rt, sel.ids.shape, np.float32) if out is None else out
-    if d_w.shape != sel.ids.shape or d_w.dtype != np.float32:
-        raise ValueError(f"out must be float32 {sel.ids.shape} (an entry's), got {d_w.dtype} {d_w.shape}")
+    _check_entries(d_w, sel, "out")
     if sel.n_rays:
         rt.launch("weight_grads", sel.n_rays, defines={"VW": vw, "NV": 1, **row_defines(features)},
                   n_rays=sel.n_rays, offsets=sel.offsets, count=sel.count, n_entries=sel.ids.size, sel_ids=sel.ids,
@@ -240,8 +245,7 @@ def blend_backward_alpha(sel: Selection, d_w: cla.Array, d_trem: np.ndarray | No
     alphas).
     """
     rt = sel.plan.runtime
-    if d_w.shape != sel.ids.shape or d_w.dtype != np.float32:
-        raise ValueError(f"d_w must be float32 {sel.ids.shape} (an entry's), got {d_w.dtype} {d_w.shape}")
+    _check_entries(d_w, sel, "d_w")
     if sel.n_rays == 0:
         return d_w
     d_trem = np.zeros(sel.n_rays, np.float32) if d_trem is None else np.asarray(d_trem, np.float32)

@@ -175,7 +175,8 @@ def test_a_table_in_row_parts_renders_and_differentiates_as_the_whole(monkeypatc
         with monkeypatch.context() as patch:
             limit_buffers(patch, table.element_size() * n * PART_CHANNELS // 3 + 64)
             patch.setattr(memory, "shared_array", spy)
-            patch.setattr(autograd, "row_parts", counted)
+            patch.setattr(memory, "row_parts", counted)                  # the table's parts (table_parts)
+            patch.setattr(autograd, "row_parts", counted)                # dF's
             split = part_render(scene, f, sampler, background, pixels)
         assert not isinstance(split[3], list)                        # the rays were not split
         row_bytes = table.element_size() * PART_CHANNELS
