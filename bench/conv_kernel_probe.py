@@ -18,14 +18,13 @@ from __future__ import annotations
 import argparse
 import statistics
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
 import pyopencl as cl
 import torch
 
-from benchutil import print_table
+from benchutil import print_table, timing
 from qr_cl.app.process import cap_kernel_threads, torch_threads
 from qr_cl.app.training.config import TrainConfig
 from qr_cl.app.training.trainer import Trainer
@@ -71,16 +70,6 @@ def neighbour_table(kmap: KernelMap) -> np.ndarray:
     return table
 
 
-def median_ms(run, rounds: int) -> float:
-    """Median wall milliseconds of ``run()`` over ``rounds`` calls."""
-    times = []
-    for _ in range(rounds):
-        start = time.perf_counter()
-        run()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times) * 1e3
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("room", help="a scene folder (e.g. a demo room in ~/.cache/qr-cl/scenes)")
@@ -124,8 +113,8 @@ def main() -> None:
                 diff = float(np.abs(got - expected).max() / np.abs(expected).max())
                 torch_ms, kernel_ms = [], []
                 for _ in range(3):
-                    torch_ms.append(median_ms(run_torch, args.rounds))
-                    kernel_ms.append(median_ms(run_kernel, args.rounds))
+                    torch_ms.append(statistics.median(timing.timed_calls(run_torch, args.rounds)[0]) * 1e3)
+                    kernel_ms.append(statistics.median(timing.timed_calls(run_kernel, args.rounds)[0]) * 1e3)
                 t, k = statistics.median(torch_ms), statistics.median(kernel_ms)
                 gflop = kmap.pairs * c_in * c_out * 2 / 1e9
                 lines.append(f"| {size}^3, {c_in} -> {c_out} | {kmap.n_out:,} | {kmap.pairs:,} | {t:.2f} ({gflop / t * 1e3:.0f} GFLOP/s) "
