@@ -15,9 +15,9 @@ allocates (and page-faults) nothing:
 * host memory the kernels read or write: :func:`shared_array` (any C-contiguous array; ``"r"``
   read-only, ``"w"`` written, ``"rw"``) and :func:`device_rows` (feature rows, padded to cstride
   only when they have to be; a table too large for one buffer in :func:`row_parts`, each
-  part's rows by :func:`table_parts`). On a
-  device that shares host memory (``rt.host_unified``: CPU devices) they wrap the host array in a
-  USE_HOST_PTR buffer (no copy); elsewhere they copy through a pooled device array.
+  part's rows by :func:`table_parts`). On a device that shares host memory
+  (``rt.host_unified``: CPU devices) they wrap the host array in a USE_HOST_PTR buffer (no
+  copy); elsewhere they copy through a pooled device array.
 * large host outputs: :func:`host_empty` takes arrays from the process-wide :class:`HostPool`,
   which reuses one only when nothing outside the pool references it any more (no array, view or
   torch tensor from ``torch.from_numpy``), so an output never aliases memory a caller holds.
