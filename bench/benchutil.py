@@ -29,6 +29,15 @@ def _checkout_timing():
 timing = _checkout_timing()
 
 
+def room_parser(doc: str) -> argparse.ArgumentParser:
+    """The options every script measuring one demo room takes: its description (the first paragraph
+    of ``doc``, the script's docstring), the positional ``room`` and ``--out``."""
+    parser = argparse.ArgumentParser(description=doc.split("\n\n")[0])
+    parser.add_argument("room", help="a scene folder (e.g. a demo room in ~/.cache/qr-cl/scenes)")
+    parser.add_argument("--out", type=Path, help="write the table to this Markdown file")
+    return parser
+
+
 def fox_and_dense_room(data: Path | None, width: int, height: int, dense_n: int) -> dict:
     """{name: (Gaussians, Camera)} of this checkout's qr_cl: the real fox (where ``data`` holds
     it; its second orbit camera) and the procedural dense room of ``dense_n`` Gaussians, both

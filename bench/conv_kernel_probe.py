@@ -15,7 +15,6 @@ The kernel lives here, not in ``kernels/``: it is a measurement, not part of the
 """
 from __future__ import annotations
 
-import argparse
 import statistics
 import tempfile
 from pathlib import Path
@@ -24,7 +23,7 @@ import numpy as np
 import pyopencl as cl
 import torch
 
-from benchutil import print_table, timing
+from benchutil import print_table, room_parser, timing
 from qr_cl.app.process import cap_kernel_threads, torch_threads
 from qr_cl.app.training.config import TrainConfig
 from qr_cl.app.training.trainer import Trainer
@@ -71,10 +70,8 @@ def neighbour_table(kmap: KernelMap) -> np.ndarray:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("room", help="a scene folder (e.g. a demo room in ~/.cache/qr-cl/scenes)")
+    parser = room_parser(__doc__)
     parser.add_argument("--rounds", type=int, default=15, help="timed calls of each (default 15)")
-    parser.add_argument("--out", type=Path, help="write the table to this Markdown file")
     args = parser.parse_args()
     cap_kernel_threads()
     rt = runtime()

@@ -18,14 +18,13 @@ Each alternative's products are checked bitwise against the per-offset ones::
 """
 from __future__ import annotations
 
-import argparse
 import statistics
 import tempfile
 from pathlib import Path
 
 import torch
 
-from benchutil import print_table, timing
+from benchutil import print_table, room_parser, timing
 from qr_cl.app.process import torch_threads
 from qr_cl.app.training.config import TrainConfig
 from qr_cl.app.training.trainer import Trainer
@@ -82,11 +81,9 @@ def product_variants(kmap: KernelMap, c_in: int, c_out: int) -> tuple[dict, int]
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("room", help="a scene folder (e.g. a demo room in ~/.cache/qr-cl/scenes)")
+    parser = room_parser(__doc__)
     parser.add_argument("--calls", type=int, default=30, help="timed calls of each, per round (default 30)")
     parser.add_argument("--rounds", type=int, default=3, help="rounds, alternating the three (default 3)")
-    parser.add_argument("--out", type=Path, help="write the table to this Markdown file")
     args = parser.parse_args()
     names = ("per offset", "grouped", "oneDNN")
     lines = [f"`python bench/conv_products_probe.py {Path(args.room).name} --calls {args.calls} --rounds {args.rounds}` "

@@ -21,7 +21,6 @@ table counts the failed runs.
 """
 from __future__ import annotations
 
-import argparse
 import os
 import resource
 import statistics
@@ -31,7 +30,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from benchutil import print_table
+from benchutil import print_table, room_parser
 
 
 class RunFailed(RuntimeError):
@@ -56,8 +55,7 @@ def run_train(python: str, room: str, steps: int, extra: list[str]) -> tuple[flo
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("room", help="a scene folder (e.g. a demo room in ~/.cache/qr-cl/scenes)")
+    parser = room_parser(__doc__)
     parser.add_argument("--python", action="append", metavar="LABEL=PYTHON",
                         help="an install to measure (repeatable; default this=<this interpreter>)")
     parser.add_argument("--short", type=int, default=30, help="steps of the short run (default 30)")
@@ -66,7 +64,6 @@ def main() -> None:
     parser.add_argument("--retries", type=int, default=0,
                         help="run a round of an install again this many times if one of its runs fails (default 0: "
                              "stop); the table counts the failed runs")
-    parser.add_argument("--out", type=Path, help="write the table to this Markdown file")
     args, extra = parser.parse_known_args()            # the rest are qr-cl train options
     if args.long <= args.short:
         parser.error(f"--long ({args.long}) must exceed --short ({args.short})")

@@ -18,14 +18,13 @@ The second part says what would have to run on both cores for a step to keep two
 """
 from __future__ import annotations
 
-import argparse
 import os
 import tempfile
 import threading
 import time
 from pathlib import Path
 
-from benchutil import print_table
+from benchutil import print_table, room_parser
 from qr_cl.app.process import cap_kernel_threads, keep_freed_memory, torch_threads
 from qr_cl.app.training.config import TrainConfig
 from qr_cl.app.training.trainer import Trainer, conv_thread_count
@@ -72,11 +71,9 @@ class ConvClock:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("room", help="a scene folder (e.g. a demo room in ~/.cache/qr-cl/scenes)")
+    parser = room_parser(__doc__)
     parser.add_argument("--steps", type=int, default=30, help="steps measured (default 30)")
     parser.add_argument("--warmup", type=int, default=8, help="steps run first, not measured (default 8)")
-    parser.add_argument("--out", type=Path, help="write the table to this Markdown file")
     args = parser.parse_args()
     cap_kernel_threads()
     keep_freed_memory()
