@@ -28,7 +28,7 @@ import numpy as np
 from .evaluation.labels import ground_truth, reached_gaussians
 from .evaluation.scoring import evaluate_features, markdown_table
 from .evaluation.visuals import PANEL_SIZE, write_visuals
-from .process import cap_kernel_threads, keep_freed_memory, torch_threads
+from .process import cap_kernel_threads, keep_freed_memory, release_freed_memory, torch_threads
 from .scenes.folders import load_scene_folder
 from .scenes.room_config import FEATURE_FIELDS, STYLES, SyntheticConfig
 from .scenes.synthetic import room_folder
@@ -109,11 +109,13 @@ def run(args: argparse.Namespace) -> int:
     rows, timings = [], {}
 
     def score(method: str, renderer: str, steps: int, features_of) -> None:
+        """Score a run on both rooms, then give back the memory it and its training freed."""
         for split, scene in eval_scenes.items():
             features = features_of(scene)
             rows.append({"method": f"{method} / {renderer} / {steps} steps", "scene": scene.name,
                          "split": split, "metrics": evaluate_features(scene, features, gts[split]),
                          "reached": evaluate_features(scene, features, reached[split], (19,))[19]})
+        release_freed_memory()
 
     with torch_threads(1):
         states = {}
@@ -129,6 +131,7 @@ def run(args: argparse.Namespace) -> int:
             watch = Stopwatch()
             baseline[scene.name] = fit_free_features(scene, cfg("baseline", args.steps))
             timings[f"per-scene baseline ({split} room), {args.steps} steps"] = watch.seconds
+            release_freed_memory()
         score("per-scene baseline", "Q-Render K=40", args.steps, lambda s: baseline[s.name])
         images = []
         for split, scene in eval_scenes.items():

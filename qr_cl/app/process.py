@@ -44,9 +44,10 @@ def keep_freed_memory() -> bool:
     and no trimming of the heap top (``M_TRIM_THRESHOLD``). A training step allocates and frees
     the same torch temporaries (activations of the UNet, the loss's [rays, C] arrays) every step,
     and each fresh mmap of them is faulted in again, 2 MB pages cleared by the kernel under
-    transparent huge pages. The process keeps its peak heap for its lifetime, so the CLI's train,
-    demo and reproduce call this, never the library. Returns False where the C library has no
-    mallopt (not glibc), changing nothing.
+    transparent huge pages. The process keeps its peak heap until :func:`release_freed_memory`
+    (the demo and reproduce call it between their phases), so the CLI's train, demo and reproduce
+    call this, never the library. Returns False where the C library has no mallopt (not glibc),
+    changing nothing.
 
     With it a training step measured less system time and fewer page faults (``qr-cl train``)."""
     libc = ctypes.CDLL(ctypes.util.find_library("c"))
@@ -54,6 +55,26 @@ def keep_freed_memory() -> bool:
     if mallopt is None:
         return False
     return bool(mallopt(_M_MMAP_THRESHOLD, HEAP_ALLOC_MAX)) & bool(mallopt(_M_TRIM_THRESHOLD, HEAP_ALLOC_MAX))
+
+
+def release_freed_memory() -> bool:
+    """Give back to the system what the process keeps for reuse, between the phases of a long
+    command (the demo's training runs, evaluations and pictures): the device pool's held buffers
+    (:func:`~qr_cl.runtime.trim_device_pool`), the host pool's free arrays
+    (:func:`~qr_cl.runtime.host_pool`) and the free pages of glibc's heaps (``malloc_trim``), which
+    :func:`keep_freed_memory` otherwise keeps for the process's lifetime. So a command's peak is
+    its largest phase's, not the sum of what its phases left behind; the next phase faults its
+    pages in once more. Returns False where the C library has no malloc_trim (the pools are
+    emptied all the same)."""
+    from ..runtime import host_pool, runtime, trim_device_pool
+
+    trim_device_pool(runtime(), 0)
+    host_pool().clear()
+    trim = getattr(ctypes.CDLL(ctypes.util.find_library("c")), "malloc_trim", None)
+    if trim is None:
+        return False
+    trim(0)
+    return True
 
 
 @contextmanager

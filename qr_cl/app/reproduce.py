@@ -50,7 +50,7 @@ from .experiments.scene_statistics import compare_scenes
 from .experiments.segmentation import segmentation_study
 from .experiments.training_runs import baseline_scores, train_and_evaluate
 from .experiments.transmittance import transmittance_study
-from .process import cap_kernel_threads, keep_freed_memory, torch_threads
+from .process import cap_kernel_threads, keep_freed_memory, release_freed_memory, torch_threads
 from .scenes.folders import load_scene_folder
 from .scenes.room_config import FEATURE_FIELDS, SyntheticConfig
 from .scenes.synthetic import room_folder
@@ -76,7 +76,9 @@ def run_reproduction(plan: Plan, mode: str, out: Path, cache: Path | None, data:
     with torch_threads(1):
         for run in tqdm(runs, desc="renderers", unit="run"):
             rows.append(train_and_evaluate(plan, run, train_paths, held, gt, reached, out, seed))
+            release_freed_memory()              # each run's peak, not the sum of what the runs left behind
         baseline = [baseline_scores(plan, held, gt, reached, out, seed + s) for s in range(plan.seeds)]
+        release_freed_memory()
         main = next(r for r in rows if (r["sampler"], r["k"], r["noise"], r["seed"]) == ("quantile", NOISE_K, 0.0, 0))
         segmentation = segmentation_study(held, network_features(Path(main["checkpoint"]), held), gt, out,
                                           f"GS-Net {main['label']}, seed {seed}")

@@ -242,3 +242,43 @@ def test_freed_memory_is_reused_without_page_faults():
         pytest.skip("the C library has no mallopt (not glibc)")
     assert int(faults("default")) >= 32
     assert int(kept) <= 4
+
+
+RELEASED = """
+import numpy as np
+from qr_cl.app.process import keep_freed_memory, release_freed_memory
+from qr_cl.runtime import device_empty, host_empty, host_pool, runtime
+
+def rss_mb():
+    return int(open("/proc/self/status").read().split("VmRSS:")[1].split()[0]) >> 10
+
+if not keep_freed_memory():
+    print("no mallopt")
+    raise SystemExit
+rt = runtime()
+host_empty((1 << 20,))                        # 4 MB in the host pool, free again
+device_empty(rt, (1 << 20,))                  # 4 MB in the device pool, held
+np.ones(16 << 20, np.float32)                 # 64 MB allocated, touched, freed: kept in the heap
+kept = rss_mb()
+held = (host_pool().nbytes, rt.pool.held_blocks)
+if not release_freed_memory():
+    print("no malloc_trim")
+    raise SystemExit
+print(kept - rss_mb(), held[0], held[1] > 0, host_pool().nbytes, rt.pool.held_blocks)
+"""
+
+
+def test_release_freed_memory_returns_what_the_process_kept():
+    """release_freed_memory (the demo calls it between its phases): the 64 MB that keep_freed_memory
+    kept in the heap go back to the system, and both pools drop their free buffers. A child
+    process: keep_freed_memory changes the process."""
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-c", RELEASED], capture_output=True, text=True, check=True).stdout.split()
+    if out[0] == "no":
+        pytest.skip(f"the C library has {' '.join(out)} (not glibc)")
+    returned_mb, host_before, device_held, host_after, device_after = out
+    assert int(returned_mb) >= 48
+    assert int(host_before) >= 4 << 20 and device_held == "True"
+    assert int(host_after) == 0 and int(device_after) == 0
