@@ -48,7 +48,7 @@ def run_train(python: str, room: str, steps: int, extra: list[str]) -> tuple[flo
                               stderr=subprocess.PIPE, text=True, cwd=out)   # not the checkout: -m imports the cwd
         if proc.returncode:
             raise RunFailed(f"{python} -m qr_cl.app.cli train {room} --steps {steps} failed "
-                             f"(rc {proc.returncode}):\n{proc.stderr[-4000:]}")
+                            f"(rc {proc.returncode}):\n{proc.stderr[-4000:]}")
         wall = time.perf_counter() - start
         after = resource.getrusage(resource.RUSAGE_CHILDREN)
     return wall, (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
@@ -62,8 +62,8 @@ def main() -> None:
     parser.add_argument("--long", type=int, default=120, help="steps of the long run (default 120)")
     parser.add_argument("--rounds", type=int, default=3, help="rounds (default 3)")
     parser.add_argument("--retries", type=int, default=0,
-                        help="run a round of an install again this many times if one of its runs fails (default 0: "
-                             "stop); the table counts the failed runs")
+                        help="failed runs of an install to tolerate over the whole measurement, each one's round "
+                             "run again (default 0: stop at the first failure); the table counts them")
     args, extra = parser.parse_known_args()            # the rest are qr-cl train options
     if args.long <= args.short:
         parser.error(f"--long ({args.long}) must exceed --short ({args.short})")
