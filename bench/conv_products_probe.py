@@ -9,8 +9,8 @@ on the same gathered input rows, alternating:
 
 * ``per offset``: ``torch.mm`` per offset into slices of one output array (what the network runs);
 * ``grouped``: one ``torch._grouped_mm`` over all offsets (one call, groups given by offsets);
-* ``oneDNN``: ``torch.ops.mkldnn._linear_pointwise`` per offset (oneDNN's fp32 matmul, which uses
-  AVX-512 on any vendor's CPU; MKL picks its kernels by vendor).
+* ``oneDNN``: ``torch.ops.mkldnn._linear_pointwise`` per offset (oneDNN's fp32 matmul, with the
+  AVX-512 kernels it generates where the CPU has them; ``ONEDNN_VERBOSE=1`` names the one used).
 
 Each alternative's products are checked bitwise against the per-offset ones::
 
