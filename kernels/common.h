@@ -1,9 +1,11 @@
 /* Shared math of the qr-cl kernels, in the original 3DGS conventions (see docs/design.md).
 
-   The constants TILE (tile side in px), ALPHA_MIN (smaller alphas are skipped), ALPHA_MAX (alpha
-   clamp), T_MIN (V-Render stops before T would drop to it) and the SH basis constants SH_C0,
-   SH_C1, SH_C2_0..4, SH_C3_0..6 are defined by the build (-D), from qr_cl/runtime/constants.py;
-   ACC_FLOATS (the floats of a row kept in registers, see RV) from the device, by Runtime. */
+   The constants TILE (tile side in px), WALK_ALL (a window past every list), ALPHA_MIN (smaller
+   alphas are skipped), ALPHA_MAX (alpha clamp), T_MIN (V-Render stops before T would drop to it)
+   and the SH basis constants SH_C0, SH_C1, SH_C2_0..4, SH_C3_0..6 are defined by the build (-D),
+   from qr_cl/runtime/constants.py; from the device, by Runtime: ACC_FLOATS (the floats of a row
+   kept in registers, see RV), GROUP_RAYS (the rays of a tile walk's work-group) and BLEND_GROUP
+   (the work-items of a GPU blend's work-group). */
 #ifndef QR_CL_COMMON_H
 #define QR_CL_COMMON_H
 
@@ -15,6 +17,29 @@ static inline float splat_sigma(float a, float b, float c, float dx, float dy) {
 
 #define CAT2(a, b) a##b
 #define CAT(a, b) CAT2(a, b)
+
+/* e^-x in float by the same float operations in scalar and vector code, on every implementation:
+   2^n p(r) with n = rint(-x log2 e) and r = -x - n ln 2 (ln 2 in two parts), p Cephes' expf
+   polynomial of e^r on |r| <= ln(2) / 2, every multiply-add an explicit fma (within 1.3 ulp of
+   exp). A library exp may round its scalar and vector versions apart (PoCL's do, in about 1 % of
+   arguments), and a ray's alphas must be the same bytes whether computed alone (tile walk) or in
+   lanes (block walk). x is clamped to [-87, 87], so 2^n is a normal float. */
+#define DEFINE_EXP_NEG(name, F, CONVERT_INT, AS_FLOAT) \
+    static inline F name(F x) { \
+        const F y = -clamp(x, (F)(-87.f), (F)(87.f)); \
+        const F n = rint(y * 1.44269504088896341f); \
+        F r = fma(n, (F)(-0.693359375f), y); \
+        r = fma(n, (F)(2.12194440e-4f), r); \
+        F p = (F)(1.9875691500e-4f); \
+        p = fma(p, r, (F)(1.3981999507e-3f)); \
+        p = fma(p, r, (F)(8.3334519073e-3f)); \
+        p = fma(p, r, (F)(4.1665795894e-2f)); \
+        p = fma(p, r, (F)(1.6666665459e-1f)); \
+        p = fma(p, r, (F)(5.0000001201e-1f)); \
+        p = fma(p, r * r, r + 1.f); \
+        return p * AS_FLOAT((CONVERT_INT(n) + 127) << 23); \
+    }
+DEFINE_EXP_NEG(exp_neg, float, convert_int, as_float)
 
 /* ---- rays: blend.cl numbers them one per work-item ---- */
 
@@ -48,7 +73,7 @@ static inline float2 ray_pixel(int p, int full, int width, __global const int2 *
 static inline float splat_alpha(float8 s, float px, float py) {
     const float sig = splat_sigma(s.s2, s.s3, s.s4, s.s0 - px, s.s1 - py);
     if (sig < 0.f) return 0.f;
-    const float a = min(ALPHA_MAX, s.s5 * exp(-sig));
+    const float a = min(ALPHA_MAX, s.s5 * exp_neg(sig));
     return a < ALPHA_MIN ? 0.f : a;
 }
 
@@ -69,6 +94,7 @@ typedef CAT(float, TILE) lanef;
 typedef CAT(int, TILE) lanei;
 #define LANE(v, l) (((__private float *)&(v))[l])      /* lane l of a lanef */
 #define LANE_I(v, l) (((__private int *)&(v))[l])      /* lane l of a lanei */
+DEFINE_EXP_NEG(exp_neg_lanes, lanef, CAT(convert_int, TILE), CAT(as_float, TILE))
 
 /* any() and all() of a lane mask (each lane -1 or 0, as vector comparisons give them): the lanes
    narrowed to bytes and tested as whole 64-bit words. PoCL's built-ins test the lanes one at a
@@ -164,7 +190,7 @@ static inline lanef block_sigma(float8 s, lanef px, lanef py) {
 
 /* splat_alpha of splat s from its exponents sig, as vectors (the same expression). */
 static inline lanef block_alpha(float8 s, lanef sig) {
-    const lanef a = fmin((lanef)(ALPHA_MAX), s.s5 * exp(-sig));
+    const lanef a = fmin((lanef)(ALPHA_MAX), s.s5 * exp_neg_lanes(sig));
     return select(a, (lanef)(0.f), (sig < 0.f) | (a < ALPHA_MIN));
 }
 
@@ -173,34 +199,150 @@ static inline lanef block_alpha(float8 s, lanef sig) {
    below it, every alpha would be skipped and the walk skips the exp. */
 #define MAY_BLEND(s, sig) lanes_any((sig) <= (s).s7 + 1e-3f)
 
-/* The V-Render walk of a block: for each Gaussian g (splat s, list position i_) of the list, in
-   depth order, that some lane blends, runs the statements ... with lanei use (-1 in the lanes that
-   blend it), lanef a (alpha'), w (w_i = T_i alpha'_i where used, 0 elsewhere) and next_T
-   (T (1 - alpha')), then advances T. A lane stops before the Gaussian that
-   would bring its T to <= T_MIN; lanes with row < 0 never start. Declares T (lanef), the lanes'
-   transmittance after the walk, in the enclosing scope. */
-#define VOLUME_WALK(range, px, py, row, ...) \
-    lanef T = (lanef)(1.f); \
-    { \
-        lanei done_ = row < 0; \
-        for (int i_ = range.x; i_ < range.y && !lanes_all(done_); i_++) { \
-            const int g = ids[i_]; \
-            const float8 s = splats[g]; \
-            const lanef sig_ = block_sigma(s, px, py); \
-            if (!MAY_BLEND(s, sig_)) continue; \
-            const lanef a = block_alpha(s, sig_); \
-            lanei use = (a > 0.f) & ~done_; \
-            if (!lanes_any(use)) continue; \
-            const lanef next_T = T * (1.f - a); \
-            const lanei stop_ = use & (next_T <= T_MIN); \
-            done_ |= stop_; \
-            use &= ~stop_; \
-            if (!lanes_any(use)) continue; \
-            const lanef w = select((lanef)(0.f), a * T, use); \
+/* The V-Render walk of a block over the list positions [from, to): for each Gaussian g (splat s,
+   list position i_) that some lane blends, in depth order, runs the statements ... with lanei use
+   (-1 in the lanes that blend it), lanef a (alpha'), w (w_i = T_i alpha'_i where used, 0
+   elsewhere) and next_T (T (1 - alpha')), then advances T. A lane stops (done) before the
+   Gaussian that would bring its T to <= T_MIN. T (lanef) and done (lanei) are the walk's state,
+   declared by the caller: (1, row < 0) at the start of a walk, or resumed (walk windows). */
+#define VOLUME_WALK(from, to, px, py, row, T, done, ...) \
+    for (int i_ = (from); i_ < (to) && !lanes_all(done); i_++) { \
+        const int g = ids[i_]; \
+        const float8 s = splats[g]; \
+        const lanef sig_ = block_sigma(s, px, py); \
+        if (!MAY_BLEND(s, sig_)) continue; \
+        const lanef a = block_alpha(s, sig_); \
+        lanei use = (a > 0.f) & ~done; \
+        if (!lanes_any(use)) continue; \
+        const lanef next_T = T * (1.f - a); \
+        const lanei stop_ = use & (next_T <= T_MIN); \
+        done |= stop_; \
+        use &= ~stop_; \
+        if (!lanes_any(use)) continue; \
+        const lanef w = select((lanef)(0.f), a * T, use); \
+        __VA_ARGS__; \
+        T = select(T, next_T, use); \
+    }
+
+/* ---- walk windows: a walk split over launches ----
+
+   A device whose driver ends long loops early (Runtime.loop_limit) walks the tile lists a window
+   of positions per launch: a launch walks the positions [walk_from, walk_to) of each tile's list,
+   and each ray's walk state waits between launches in the slots of a state buffer, stored and
+   loaded exactly, so a walk gives the same bytes in one launch or in many. A single launch walks
+   [0, WALK_ALL) (from the build). The window that reaches the end of a list finishes its rays
+   (writes their outputs); windows past the end do nothing. */
+#define WINDOW_ARGS const int walk_from, const int walk_to
+
+/* The list positions [from, to) of range that the window [walk_from, walk_to) walks. Returns 0
+   when the window has nothing to do (it starts past a list that an earlier one finished); *first:
+   the window starts the walk; *last: it finishes it. */
+static inline int window_span(int2 range, int walk_from, int walk_to, int *from, int *to, int *first,
+                              int *last) {
+    const int len = range.y - range.x;
+    *first = walk_from == 0;
+    *last = walk_to >= len;
+    *from = range.x + walk_from;
+    *to = range.x + min(walk_to, len);
+    return *first || walk_from < len;
+}
+
+/* ---- the tile walk of select.cl and vrender.cl (GPU shapes) ----
+
+   A work-group of GROUP_RAYS work-items (from the build), one ray each, walks one tile's list:
+   its work-items load the next GROUP_RAYS Gaussians (id and splat) into local memory, one each,
+   behind a barrier; then every ray walks them from there with the float operations of a lane of
+   the block walk (so both walks give the same bytes), and the group stops once all its rays are
+   done. Whole image (full != 0): group b holds GROUP_RAYS consecutive pixels (row-major) of tile
+   b / TILE_PARTS, part b % TILE_PARTS. Pixel subset: group b holds the rays order[blocks[b].x ..+
+   blocks[b].y) of tile blocks[b].z (at most GROUP_RAYS). */
+#define TILE_PARTS (TILE * TILE / GROUP_RAYS)
+
+/* The ray of this work-item: *p its output row (-1 for none) and (px, py) its pixel centre;
+   returns its tile's range. */
+static inline int2 tile_ray(int full, __global const int2 *ranges, __global const int2 *pixels,
+                            __global const int *order, __global const int4 *blocks, int width, int height,
+                            int tiles_x, float *px, float *py, int *p) {
+    const int b = get_group_id(0), lid = get_local_id(0);
+    int tile;
+    if (full) {
+        tile = b / TILE_PARTS;
+        const int in_tile = (b % TILE_PARTS) * GROUP_RAYS + lid;
+        const int x = (tile % tiles_x) * TILE + in_tile % TILE, y = (tile / tiles_x) * TILE + in_tile / TILE;
+        *px = x + 0.5f;
+        *py = y + 0.5f;
+        *p = x < width && y < height ? y * width + x : -1;
+    } else {
+        const int4 blk = blocks[b];
+        tile = blk.z;
+        *p = lid < blk.y ? order[blk.x + lid] : -1;
+        const int2 xy = *p >= 0 ? pixels[*p] : (int2)(0);
+        *px = xy.x + 0.5f;
+        *py = xy.y + 0.5f;
+    }
+    return ranges[tile];
+}
+
+/* Declares the local batch, px, py, p (tile_ray) and the window's from, to, first, last in a
+   kernel declared with BLOCK_ARGS and WINDOW_ARGS; returns (the whole group: one tile) when the
+   window has nothing to do. */
+#define TILE_SETUP \
+    __local int batch_ids_[GROUP_RAYS]; \
+    __local float8 batch_splats_[GROUP_RAYS]; \
+    __local int alive_; \
+    float px, py; \
+    int p; \
+    const int2 range = tile_ray(full, ranges, pixels, order, blocks, width, height, tiles_x, &px, &py, &p); \
+    int from, to, first, last; \
+    if (!window_span(range, walk_from, walk_to, &from, &to, &first, &last)) return;
+
+/* for (each Gaussian g, splat s, list position i_ in [from, to), in batches staged by the group)
+   { ... } of a ray that is not done; the group leaves once every ray is done. Every work-item of
+   the group runs the loop (its bounds and exit are the group's), so the barriers are uniform. */
+#define TILE_WALK(from, to, done, ...) \
+    for (int b0_ = (from); b0_ < (to); b0_ += GROUP_RAYS) { \
+        const int lid_ = get_local_id(0); \
+        barrier(CLK_LOCAL_MEM_FENCE); \
+        if (lid_ == 0) alive_ = 0; \
+        if (b0_ + lid_ < (to)) { \
+            const int g_ = ids[b0_ + lid_]; \
+            batch_ids_[lid_] = g_; \
+            batch_splats_[lid_] = splats[g_]; \
+        } \
+        barrier(CLK_LOCAL_MEM_FENCE); \
+        if (!(done)) alive_ = 1; \
+        barrier(CLK_LOCAL_MEM_FENCE); \
+        if (!alive_) break; \
+        const int n_ = min(GROUP_RAYS, (to) - b0_); \
+        for (int j_ = 0; j_ < n_ && !(done); j_++) { \
+            const int i_ = b0_ + j_, g = batch_ids_[j_]; \
+            const float8 s = batch_splats_[j_]; \
             __VA_ARGS__; \
-            T = select(T, next_T, use); \
         } \
     }
+
+/* The alpha'_i of splat s at (px, py), 0 when skipped: a ray's block_alpha, whose Gaussians
+   beyond sigma_max (MAY_BLEND) have alphas below ALPHA_MIN, skipped here without the exp. */
+static inline float ray_alpha(float8 s, float px, float py) {
+    const float sig = splat_sigma(s.s2, s.s3, s.s4, s.s0 - px, s.s1 - py);
+    return sig <= s.s7 + 1e-3f ? splat_alpha(s, px, py) : 0.f;
+}
+
+/* The V-Render walk of one ray over the batches of TILE_WALK: for each Gaussian it blends, runs
+   ... with a (alpha'), w = T alpha' and next_T = T (1 - alpha'), then advances T; it is done
+   before the Gaussian that would bring T to <= T_MIN (VOLUME_WALK per ray). */
+#define RAY_VOLUME_WALK(from, to, T, done, ...) \
+    TILE_WALK(from, to, done, \
+        const float a = ray_alpha(s, px, py); \
+        if (a > 0.f) { \
+            const float next_T = T * (1.f - a); \
+            if (next_T <= T_MIN) done = 1; \
+            else { \
+                const float w = a * T; \
+                __VA_ARGS__; \
+                T = next_T; \
+            } \
+        })
 
 /* ---- tile spans: the tiles of each tile row that a splat's blend ellipse reaches ----
 

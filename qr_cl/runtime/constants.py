@@ -27,6 +27,9 @@ MAX_CHANNELS = 2048                # feature channels a render supports (1..MAX_
 #: kernels/common.h); smaller ones, e.g. a training step's rays, are read right after and stay cached.
 STREAM_MIN_BYTES = 64 << 20
 
+#: The window end of a walk launched whole (walk windows, kernels/common.h): past any list.
+WALK_ALL = 2**31 - 1
+
 #: Samplers of the selection stage (``qr_cl.stages.select``): which Gaussians a ray blends.
 SAMPLERS = ("volume", "quantile", "topk", "stratified")
 
@@ -47,7 +50,7 @@ def _float_literal(x: float) -> str:
 
 
 def _kernel_constants() -> dict[str, str]:
-    out = {"TILE": str(TILE), "ALPHA_MIN": _float_literal(ALPHA_MIN),
+    out = {"TILE": str(TILE), "WALK_ALL": str(WALK_ALL), "ALPHA_MIN": _float_literal(ALPHA_MIN),
            "ALPHA_MAX": _float_literal(ALPHA_MAX), "T_MIN": _float_literal(T_MIN),
            "SPAN_SLACK": _float_literal(SPAN_SLACK), "SPAN_ROUNDING": _float_literal(SPAN_ROUNDING),
            "SPAN_MARGIN_PX": _float_literal(SPAN_MARGIN_PX), "SPAN_MARGIN_REL": _float_literal(SPAN_MARGIN_REL),

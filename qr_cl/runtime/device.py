@@ -22,7 +22,7 @@ import pyopencl as cl
 import pyopencl.array as cla
 import pyopencl.tools as cl_tools
 
-from .constants import KERNEL_CONSTANTS, TILE
+from .constants import KERNEL_CONSTANTS, TILE, WALK_ALL
 from .signatures import KernelArg, SignatureError, kernel_signatures
 
 NO_OPENCL_HELP = (
@@ -50,6 +50,10 @@ LOOP_PROBE = 1 << 20
 
 class NoDeviceError(RuntimeError):
     """No usable OpenCL device (none installed, or none passed the trial kernel)."""
+
+
+class DeviceLimitError(NoDeviceError):
+    """The device's work-group or local-memory limits are below what a kernel's launch needs."""
 
 
 def list_devices() -> list[tuple[int, int, cl.Platform, cl.Device]]:
@@ -122,8 +126,8 @@ def implementation(device: cl.Device) -> str:
 
 
 def self_check_enabled() -> bool:
-    """False when ``QR_CL_SELF_CHECK=off``: devices are then used without the loop probe and the
-    render check (only for studying a driver's failures: results are not verified)."""
+    """False when ``QR_CL_SELF_CHECK=off``: devices are then used without the render check (only
+    for studying a driver's failures: results are not verified)."""
     value = os.environ.get("QR_CL_SELF_CHECK", "on").strip().lower()
     if value not in ("on", "off"):
         raise ValueError(f"QR_CL_SELF_CHECK={value!r}: use on or off")
@@ -131,10 +135,7 @@ def self_check_enabled() -> bool:
 
 
 def trial_run(device: cl.Device) -> str | None:
-    """Build and run tiny kernels on ``device``: a trial kernel, then (unless
-    :func:`self_check_enabled` says no) the loop probe, which catches drivers that end long
-    loops early without an error (Mesa 22's llvmpipe stops at 65535 iterations per group of work-
-    items). Returns None when both work, else the reason."""
+    """Build and run a tiny kernel on ``device``; None when it works, else the reason."""
     try:
         ctx = cl.Context([device])
         queue = cl.CommandQueue(ctx)
@@ -144,22 +145,60 @@ def trial_run(device: cl.Device) -> str | None:
         cl.Kernel(prg, "trial")(queue, (64,), None, buf)
         out = np.empty_like(host)
         cl.enqueue_copy(queue, out, buf)
-        iterations = np.zeros(64, np.int32)
-        if self_check_enabled():
-            ones = cl.Buffer(ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
-                             hostbuf=np.ones(64, np.int32))
-            acc = cl.Buffer(ctx, cl.mem_flags.READ_WRITE, iterations.nbytes)
-            cl.Kernel(prg, "loop_probe")(queue, (64,), None, np.int32(LOOP_PROBE), ones, acc)
-            cl.enqueue_copy(queue, iterations, acc)
         queue.finish()
     except cl.Error as exc:
         return f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else exc}"
     if not np.array_equal(out, 2 * host + 1):
         return "trial kernel ran but returned wrong values"
-    if self_check_enabled() and not np.all(iterations == LOOP_PROBE):
-        return (f"loop limit: a loop of {LOOP_PROBE} iterations ended after {int(iterations.min())} without "
-                "an error; qr-cl's walks over long tile lists would give wrong images here")
     return None
+
+
+def forced_loop_limit() -> int | None:
+    """``QR_CL_LOOP_LIMIT`` as an int (walks in windows as on a device that ends loops after that
+    many iterations: how the windows run on any device, and a bound for a GPU driver's watchdog),
+    or None when unset; ValueError for a value that is not an integer >= 1024."""
+    value = os.environ.get("QR_CL_LOOP_LIMIT", "").strip()
+    if not value:
+        return None
+    if not value.isdigit() or int(value) < 1024:
+        raise ValueError(f"QR_CL_LOOP_LIMIT={value!r}: use an integer >= 1024 (loop iterations per work-item)")
+    return int(value)
+
+
+@lru_cache(maxsize=None)
+def _probed_loop_limit(device: cl.Device) -> int | None:
+    ctx = cl.Context([device])
+    queue = cl.CommandQueue(ctx)
+    prg = cl.Program(ctx, _TRIAL_SOURCE).build()
+    ones = cl.Buffer(ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=np.ones(64, np.int32))
+    iterations = np.zeros(64, np.int32)
+    acc = cl.Buffer(ctx, cl.mem_flags.READ_WRITE, iterations.nbytes)
+    cl.Kernel(prg, "loop_probe")(queue, (64,), None, np.int32(LOOP_PROBE), ones, acc)
+    cl.enqueue_copy(queue, iterations, acc)
+    queue.finish()
+    made = int(iterations.min())
+    return None if made >= LOOP_PROBE else made
+
+
+def loop_limit(device: cl.Device) -> int | None:
+    """The loop iterations a work-item of ``device`` makes before its driver ends its loops
+    without an error (Mesa 22's llvmpipe: 65535 in all its loops together), or None when a loop
+    of LOOP_PROBE iterations ran whole (the loop probe, once per device and process);
+    :func:`forced_loop_limit` first. A device with a limit walks its lists in windows
+    (:func:`walk_windows`)."""
+    forced = forced_loop_limit()
+    return forced if forced is not None else _probed_loop_limit(device)
+
+
+def walk_windows(limit: int | None, length: int, step_loops: int) -> list[tuple[int, int]]:
+    """The windows ``(walk_from, walk_to)`` in which a kernel walks lists of at most ``length``
+    steps, each step making at most ``step_loops`` loop iterations: ``[(0, WALK_ALL)]`` (one
+    launch) without a loop ``limit``, else windows of ``limit // 2 // step_loops`` steps (half the
+    limit left to the loops outside the steps) covering ``length``."""
+    if limit is None:
+        return [(0, WALK_ALL)]
+    step = max(1, limit // 2 // step_loops)
+    return [(w, w + step) for w in range(0, max(length, 1), step)]
 
 
 def choose_device() -> cl.Device:
@@ -195,6 +234,15 @@ def kernel_files() -> dict[str, str]:
 
 #: Work-group size of GPU-shaped launches (a multiple of every vendor's SIMD width: 32 or 64).
 GROUP_SIZE = 64
+#: Local memory of the GPU-shaped kernels: bytes per ray of a tile walk's batch (an id and a
+#: splat, kernels/common.h TILE_WALK) and per work-item of a GPU blend (group_blend in blend.cl:
+#: a row's start and count, GROUP_ENTRIES = 16 staged ids and weights).
+TILE_WALK_BYTES_PER_RAY = 4 + 32
+GROUP_BLEND_BYTES_PER_ITEM = 8 + 16 * 8
+#: The rays of a tile walk's work-group: the largest of these the device allows (TILE * TILE,
+#: a whole tile, where it can; each divides it).
+GROUP_RAYS_CHOICES = (TILE * TILE, 128, 64, 32, 16)
+
 #: Work-group size of the lane kernels, whose work-items hold TILE-wide vectors of rays or Gaussians
 #: (select.cl, vrender.cl, project.cl): PoCL runs the work-items of a group on one thread's stack,
 #: and its default groups of up to 4096 overflow it with their private arrays (garbage or a crash on
@@ -244,7 +292,9 @@ class Runtime:
     ``gpu_shaped``: launch GPU-shaped work (work-groups of :data:`GROUP_SIZE` over padded global
     sizes, device sorts, many-work-item transposes) rather than CPU-shaped work (host sorts, a
     few long work-items); set from :func:`gpu_shapes` when the Runtime is created, and settable
-    (that is how tests run both shapes on one device).
+    (that is how tests run both shapes on one device). ``loop_limit``: the loop iterations a
+    work-item may make on this device (:func:`loop_limit`; None: no limit), by which kernels
+    walk their lists in windows (:func:`walk_windows`); settable like ``gpu_shaped``.
     :meth:`capped_buffers` makes :attr:`max_buffer_bytes` report less on the calling thread, so
     that its tables and ray sets are split as on a device with smaller buffers (the render check
     splits a table on every device with it; other threads' renders are not affected).
@@ -255,8 +305,10 @@ class Runtime:
     queue: cl.CommandQueue = field(init=False)
     pool: cl_tools.MemoryPool = field(init=False, repr=False)
     gpu_shaped: bool = field(init=False)
+    loop_limit: int | None = field(init=False)
     _caps: threading.local = field(init=False, default_factory=threading.local, repr=False)
     _programs: dict = field(init=False, default_factory=dict)
+    _group_limits: dict = field(init=False, default_factory=dict, repr=False)
     _build_lock: threading.Lock = field(init=False, default_factory=threading.Lock, repr=False)
     _launch_lock: threading.Lock = field(init=False, default_factory=threading.Lock, repr=False)
 
@@ -265,6 +317,37 @@ class Runtime:
         self.queue = cl.CommandQueue(self.context)
         self.pool = cl_tools.MemoryPool(cl_tools.ImmediateAllocator(self.queue))
         self.gpu_shaped = gpu_shapes(self.device)
+        self.loop_limit = loop_limit(self.device)
+
+    @property
+    def narrow_rows(self) -> bool:
+        """Whether a blend work-item takes one vector of a row (GPU shapes, and devices with a
+        loop limit, whose loops over a row's chunks would add up) rather than up to
+        CPU_ROW_VECTORS (:func:`qr_cl.runtime.channel_layout`)."""
+        return self.gpu_shaped or self.loop_limit is not None
+
+    def _group_size(self, choices: tuple[int, ...], local_bytes: int, what: str) -> int:
+        """The largest of ``choices`` that the device's work-group and local-memory limits allow
+        for work-groups using ``local_bytes`` per work-item; DeviceLimitError naming the device
+        and its limits when none does."""
+        local = int(self.device.local_mem_size)
+        for size in choices:
+            if size <= self.device.max_work_group_size and size * local_bytes + 64 <= local:
+                return size
+        raise DeviceLimitError(
+            f"{implementation(self.device)} allows work-groups of {self.device.max_work_group_size} work-items "
+            f"and {local} bytes of local memory; {what} need work-groups of {choices[-1]} with "
+            f"{choices[-1] * local_bytes + 64} bytes")
+
+    @property
+    def group_rays(self) -> int:
+        """The rays of a tile walk's work-group (``GROUP_RAYS`` of kernels/common.h)."""
+        return self._group_size(GROUP_RAYS_CHOICES, TILE_WALK_BYTES_PER_RAY, "qr-cl's tile walks")
+
+    @property
+    def blend_group(self) -> int:
+        """The work-items of a GPU blend's work-group (``BLEND_GROUP`` of kernels/blend.cl)."""
+        return self._group_size((GROUP_SIZE, 32, 16, 8), GROUP_BLEND_BYTES_PER_ITEM, "qr-cl's GPU blends")
 
     @property
     def max_buffer_bytes(self) -> int:
@@ -316,8 +399,8 @@ class Runtime:
         return width * width if width >= 8 else 8 * width
 
     def kernel(self, name: str, **defines: int | float) -> tuple[cl.Kernel, tuple[KernelArg, ...]]:
-        """The kernel ``name`` built with ``-D KEY=VALUE`` per define (and the shared constants
-        and ``ACC_FLOATS``, :attr:`accumulator_floats`), with the arguments its source declares
+        """The kernel ``name`` built with ``-D KEY=VALUE`` per define (and the shared constants,
+        ``ACC_FLOATS`` (:attr:`accumulator_floats`), ``GROUP_RAYS`` and ``BLEND_GROUP``), with the arguments its source declares
         (checked against the built kernel's count). Programs and kernel objects are cached; a
         program is built once, under a lock, and published whole, so threads may ask at once."""
         file = kernel_files().get(name)
@@ -334,7 +417,8 @@ class Runtime:
 
     def _build(self, file: str, defines: dict) -> dict[str, tuple[cl.Kernel, tuple[KernelArg, ...]]]:
         """{kernel name: (kernel, declared arguments)} of ``file`` built with ``defines``."""
-        constants = {**KERNEL_CONSTANTS, "ACC_FLOATS": self.accumulator_floats, **defines}
+        constants = {**KERNEL_CONSTANTS, "ACC_FLOATS": self.accumulator_floats, "GROUP_RAYS": self.group_rays,
+                     "BLEND_GROUP": self.blend_group, **defines}
         source = kernel_source(file)
         with warnings.catch_warnings():          # some compilers (Intel's) always return a build log
             warnings.simplefilter("ignore", cl.CompilerWarning)
@@ -370,10 +454,25 @@ class Runtime:
         if local_size is None and self.gpu_shaped:
             local_size = (GROUP_SIZE,) + (1,) * (len(size) - 1)
             size = (-(-size[0] // GROUP_SIZE) * GROUP_SIZE,) + size[1:]
+        if local_size is not None:
+            self._check_group(name, kernel, int(np.prod(local_size)))
         bound = [bind(name, a, args[a.name]) for a in declared]
         with self._launch_lock:                  # a kernel object's arguments are not thread-safe
             kernel(self.queue, size, local_size, *bound)
 
+
+
+    def _check_group(self, name: str, kernel: cl.Kernel, items: int) -> None:
+        """DeviceLimitError naming the device when ``kernel`` cannot run work-groups of ``items``
+        work-items on it (CL_KERNEL_WORK_GROUP_SIZE: the device's limit, or less for a kernel
+        that needs many registers)."""
+        limit = self._group_limits.get(kernel.int_ptr)
+        if limit is None:
+            limit = self._group_limits[kernel.int_ptr] = kernel.get_work_group_info(
+                cl.kernel_work_group_info.WORK_GROUP_SIZE, self.device)
+        if items > limit:
+            raise DeviceLimitError(f"{implementation(self.device)} runs kernel {name} in work-groups of at most "
+                                   f"{limit} work-items; qr-cl launches it in work-groups of {items}")
 
 
 _RUNTIME: Runtime | None = None

@@ -444,9 +444,11 @@ def device_scan_works(context: cl.Context) -> bool:
 
 def exclusive_scan(rt: Runtime, values: cla.Array, out: cla.Array | None = None) -> cla.Array:
     """Exclusive int32 prefix sum of ``values`` into ``out`` (in place when None); returns it.
-    pyopencl's scan on the device, or numpy's on the host where :func:`device_scan_works` says no."""
+    pyopencl's scan on the device, or numpy's on the host where :func:`device_scan_works` says no
+    or the device has a loop limit (the scan's work-items loop over intervals that grow with the
+    array)."""
     out = values if out is None else out
-    if device_scan_works(rt.context):
+    if rt.loop_limit is None and device_scan_works(rt.context):
         _scan_kernel(rt.context)(values, out)
     else:
         host = values.get()

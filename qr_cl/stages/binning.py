@@ -11,7 +11,7 @@ import threading
 import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cached_property, lru_cache
 
 import numpy as np
 import pyopencl as cl
@@ -63,6 +63,12 @@ class RasterPlan:
     def nbytes(self) -> int:
         """Device bytes held by the plan."""
         return self.splats.nbytes + self.radii.nbytes + self.ranges.nbytes + self.ids.nbytes
+
+    @cached_property
+    def longest_list(self) -> int:
+        """The longest tile list (Gaussians), read from the device once: how far a walk goes."""
+        ranges = self.ranges.get().reshape(-1, 2)
+        return int((ranges[:, 1] - ranges[:, 0]).max(initial=0))
 
     def ray_args(self) -> dict:
         """The tile-list arguments every per-ray kernel declares (RAY_ARGS in kernels/select.cl)."""
@@ -170,10 +176,11 @@ def sort_pairs(rt: Runtime, keys: cla.Array, values: cla.Array, key_bits: int) -
     their order as int64), measured faster than numpy's stable argsort (a merge sort) and than
     pyopencl's GPU-style RadixSort there (see bench/test_bench_binning.py); its outputs are pooled
     host arrays. On GPU-shaped ones (:attr:`qr_cl.runtime.Runtime.gpu_shaped`) pyopencl's RadixSort
-    runs on the device, once :func:`device_sort_works` has checked it there; all are stable, so the
+    runs on the device, once :func:`device_sort_works` has checked it there, unless the device has a
+    loop limit (its scans loop over intervals that grow with the keys); all are stable, so the
     order is the same.
     """
-    if not rt.gpu_shaped or not device_sort_works(rt.context):
+    if not rt.gpu_shaped or rt.loop_limit is not None or not device_sort_works(rt.context):
         host_keys = _get(keys)
         if key_bits > 63:
             raise ValueError(f"sort keys of {key_bits} bits: at most 63 are supported")
@@ -193,12 +200,13 @@ def bin_and_sort(rt: Runtime, proj: Projection, width: int, height: int) -> tupl
     """Keys per (Gaussian, tile), sorted by tile then depth, from :func:`qr_cl.stages.project.project`.
 
     Returns (ranges [tiles,2], ids [max(M,1)], M) for M keys. GPU-shaped runtimes sort the M keys
-    (:func:`sort_pairs`); CPU-shaped ones sort the N Gaussians by depth and then the pairs by tile
-    (:func:`_bin_counted`): the same ids.
+    (:func:`sort_pairs`), and so do devices with a loop limit (the counting sort's few work-items
+    each walk many Gaussians); CPU-shaped ones sort the N Gaussians by depth and then the pairs by
+    tile (:func:`_bin_counted`): the same ids.
     """
     tiles_x, tiles_y = tile_grid(width, height)
     n_tiles = tiles_x * tiles_y
-    if not rt.gpu_shaped:
+    if not rt.gpu_shaped and rt.loop_limit is None:
         return _bin_counted(rt, proj, tiles_x, n_tiles)
     n, touched = proj.tiles_touched.size, proj.tiles_touched
     ranges = device_zeros(rt, (n_tiles, 2), np.int32)

@@ -18,11 +18,16 @@ import numpy as np
 import pyopencl.array as cla
 
 from ..runtime import (TILE, Runtime, channel_layout, check_buffer, device_empty, device_zeros,
-                       padded_vector, streamed, to_device)
+                       padded_vector, streamed, to_device, walk_windows)
 from .select import Selection
-from .transpose import backward_order, transpose
+from .transpose import backward_order, longest_segment, transpose
 
 OWNERS_PER_CORE = 1   # the CPU backward scatter's work-items per compute unit
+GPU_VW = 4            # GPU blends: floats of a row per work-item (a 16-byte load)
+#: Loop iterations per entry (the walk windows' unit, :func:`qr_cl.runtime.walk_windows`) of the
+#: gathers over a Gaussian's entries (a row vector per work-item, or group_blend's staging and
+#: sums) and of splat_backward; weight_grads adds a loop over a row's vectors.
+GATHER_LOOPS, SPLAT_LOOPS = 4, 2
 OWNER_BINS = 4096     # ... whose Gaussian ranges are cut from a histogram of this many bins
 CPU_GROUP_ROWS = TILE  # CPU shapes: blend work-groups of a tile row of rays (or dF rows) x all chunks
 
@@ -53,13 +58,31 @@ def row_defines(features: cla.Array) -> dict:
 
 
 def work_groups(rt: Runtime, rows: int, n_chunks: int) -> tuple[int, tuple[int, int] | None]:
-    """(global rows, local size) of a blend kernel over ``rows`` x ``n_chunks`` work-items: on CPU
-    shapes work-groups of CPU_GROUP_ROWS rows x all chunks (rows padded; the kernels return past
-    their count), so that PoCL keeps at most that many work-items' accumulators (up to 2 KB each)
-    on a thread's stack; GPU shapes (or too large groups) leave it to the runtime."""
-    if rt.gpu_shaped or CPU_GROUP_ROWS * n_chunks > rt.device.max_work_group_size:
+    """(global rows, local size) of a CPU-shaped blend kernel over ``rows`` x ``n_chunks``
+    work-items: work-groups of CPU_GROUP_ROWS rows x all chunks (rows padded; the kernels return
+    past their count), so that PoCL keeps at most that many work-items' accumulators (up to 2 KB
+    each) on a thread's stack; too large groups are left to the runtime."""
+    if CPU_GROUP_ROWS * n_chunks > rt.device.max_work_group_size:
         return rows, None
     return -(-rows // CPU_GROUP_ROWS) * CPU_GROUP_ROWS, (CPU_GROUP_ROWS, n_chunks)
+
+
+def group_shape(rt: Runtime, rows: int, cstride: int) -> tuple[dict, tuple[int, int], tuple[int, int]]:
+    """(defines, global size, local size) of a GPU blend kernel (blend_group, blend_backward_group)
+    over ``rows`` rows of ``cstride`` floats: work-items along a row's vectors of GPU_VW floats
+    (the first dimension: neighbours read neighbouring floats of a row) x rows, in work-groups of
+    Runtime.blend_group work-items, both dimensions padded (the kernels leave the padding idle)."""
+    vw = min(GPU_VW, cstride)
+    n_vec = cstride // vw
+    lc = min(n_vec, rt.blend_group)
+    lr = max(1, rt.blend_group // lc)
+    return {"VW": vw, "NV": 1}, (-(-n_vec // lc) * lc, -(-rows // lr) * lr), (lc, lr)
+
+
+def longest_entries(sel: Selection) -> int:
+    """The most entries of one ray of ``sel`` (read from the device): how far a walk over a ray's
+    entries goes."""
+    return int(sel.spans()[1].max(initial=0))
 
 
 def blend_forward(sel: Selection, features: cla.Array, channels: int,
@@ -78,7 +101,7 @@ def blend_forward(sel: Selection, features: cla.Array, channels: int,
     part: row0 0, not accumulated; else it is made alone first).
     """
     rt = sel.plan.runtime
-    vw, nv, cstride = channel_layout(channels, rt.gpu_shaped)
+    vw, nv, cstride = channel_layout(channels, rt.narrow_rows)
     _check_part(sel, row0, features.shape[0], "features")
     _check_rows(features, features.shape[0], cstride, "features", half=True)
     check_buffer(rt, 4 * sel.n_rays * cstride, f"the image of {sel.n_rays} rays x {cstride} channels")
@@ -98,15 +121,20 @@ def blend_forward(sel: Selection, features: cla.Array, channels: int,
     sel.ready()
     size, full = sel.launch()
     plan = sel.plan
+    args = dict(offsets=sel.offsets, count=sel.count, n_entries=sel.ids.size, sel_ids=sel.ids, sel_w=sel.weights,
+                features=features, row0=row0, n_rows=features.shape[0], cstride=cstride, full=full,
+                n_rays=sel.n_rays, width=plan.width, height=plan.height, tiles_x=plan.tiles_x, t_rem=sel.t_rem,
+                accumulate=accumulate, image=image, **bg)
+    if rt.gpu_shaped:
+        defines, size2, local = group_shape(rt, size, cstride)
+        rt.launch("blend_group", size2, defines={**defines, **row_defines(features)}, local_size=local, **args)
+        return image
     n_chunks = cstride // (vw * nv)
     # CPU shapes: for whole images a group's rays are a tile row, whose feature rows stay in cache
     # over its chunks; always, the groups keep PoCL's per-group private arrays small
     size, local = work_groups(rt, size, n_chunks)
     rt.launch("blend", (size, n_chunks), defines={"VW": vw, "NV": nv, **row_defines(features)}, local_size=local,
-              offsets=sel.offsets, count=sel.count, n_entries=sel.ids.size, sel_ids=sel.ids, sel_w=sel.weights,
-              features=features, row0=row0, n_rows=features.shape[0], cstride=cstride, full=full, n_rays=sel.n_rays,
-              width=plan.width, height=plan.height, tiles_x=plan.tiles_x, t_rem=sel.t_rem, accumulate=accumulate,
-              image=image, **bg)
+              **args)
     return image
 
 
@@ -123,7 +151,7 @@ def blend_backward(sel: Selection, dimage: cla.Array, channels: int, out: cla.Ar
     Gaussians (no transpose), or a gather over :func:`qr_cl.stages.transpose.transpose`.
     """
     rt = sel.plan.runtime
-    vw, nv, cstride = channel_layout(channels, rt.gpu_shaped)
+    vw, nv, cstride = channel_layout(channels, rt.narrow_rows)
     n_rows = sel.n_gaussians - row0 if n_rows is None else n_rows
     _check_part(sel, row0, n_rows, "dF")
     _check_rows(dimage, sel.n_rays, cstride, "dimage")
@@ -143,12 +171,19 @@ def blend_backward(sel: Selection, dimage: cla.Array, channels: int, out: cla.Ar
                   touched=device_zeros(rt, max(n_rows, 1), np.uint8), dfeatures=dfeatures)
         return dfeatures
     t = transpose(sel)
-    n_chunks = cstride // (vw * nv)
-    size, local = work_groups(rt, n_rows, n_chunks)
-    rt.launch("blend_backward", (size, n_chunks), defines={"VW": vw, "NV": nv}, local_size=local,
-              n=n_rows, order=backward_order(sel, row0, row0 + n_rows), n_chunks=t.chunks, cursor=t.cursor,
-              t_ray=t.ray, t_w=t.weight, dimage=dimage, n_rays=sel.n_rays, cstride=cstride, row0=row0,
-              dfeatures=dfeatures)
+    args = dict(n=n_rows, order=backward_order(sel, row0, row0 + n_rows), n_chunks=t.chunks, cursor=t.cursor,
+                t_ray=t.ray, t_w=t.weight, dimage=dimage, n_rays=sel.n_rays, cstride=cstride, row0=row0,
+                dfeatures=dfeatures)
+    windows = walk_windows(rt.loop_limit, longest_segment(sel) if rt.loop_limit else 0, GATHER_LOOPS)
+    if rt.gpu_shaped:
+        defines, size, local = group_shape(rt, n_rows, cstride)
+        kernel = "blend_backward_group"
+    else:
+        n_chunks = cstride // (vw * nv)
+        size, local = work_groups(rt, n_rows, n_chunks)
+        kernel, defines, size = "blend_backward", {"VW": vw, "NV": nv}, (size, n_chunks)
+    for walk_from, walk_to in windows:
+        rt.launch(kernel, size, defines=defines, local_size=local, **args, walk_from=walk_from, walk_to=walk_to)
     return dfeatures
 
 
@@ -192,8 +227,10 @@ def scatters(sel: Selection) -> bool:
     transpose was not made ahead (:func:`prepare_backward`); GPU shapes always gather. On PoCL the
     scatter needs no transpose, so it measured faster for whole images and for subsets that would
     otherwise transpose on the spot; a transpose made ahead on another thread leaves the gather
-    slightly faster (see qr-cl bench)."""
-    if sel.plan.runtime.gpu_shaped:
+    slightly faster (see qr-cl bench). A device with a loop limit gathers too: the scatter's few
+    work-items each walk every ray."""
+    rt = sel.plan.runtime
+    if rt.gpu_shaped or rt.loop_limit is not None:
         return False
     return sel.n_rays >= sel.n_gaussians or sel.transposed is None
 
@@ -201,7 +238,7 @@ def scatters(sel: Selection) -> bool:
 def prepare_backward(sel: Selection) -> None:
     """Make ahead what :func:`blend_backward` will need of ``sel`` (geometry only: the transpose,
     for GPU shapes and pixel subsets), e.g. on another thread while the network runs."""
-    if sel.plan.runtime.gpu_shaped or sel.n_rays < sel.n_gaussians:
+    if not scatters(sel) or sel.n_rays < sel.n_gaussians:
         transpose(sel)
 
 
@@ -220,16 +257,20 @@ def weight_grads(sel: Selection, features: cla.Array, dimage: cla.Array, channel
     pooled array); the other entries of ``out`` are left as they are, for the other parts.
     dimage: float32 [P, cstride] device rows of dL/dimage. The input of :func:`blend_backward_alpha`."""
     rt = sel.plan.runtime
-    vw, _, cstride = channel_layout(channels, rt.gpu_shaped)
+    vw, _, cstride = channel_layout(channels, rt.narrow_rows)
     _check_part(sel, row0, features.shape[0], "features")
     _check_rows(features, features.shape[0], cstride, "features", half=True)
     _check_rows(dimage, sel.n_rays, cstride, "dimage")
     d_w = device_empty(rt, sel.ids.shape, np.float32) if out is None else out
     _check_entries(d_w, sel, "out")
-    if sel.n_rays:
+    if sel.n_rays == 0:
+        return d_w
+    for walk_from, walk_to in walk_windows(rt.loop_limit, longest_entries(sel) if rt.loop_limit else 0,
+                                           cstride // vw + 2):
         rt.launch("weight_grads", sel.n_rays, defines={"VW": vw, "NV": 1, **row_defines(features)},
                   n_rays=sel.n_rays, offsets=sel.offsets, count=sel.count, n_entries=sel.ids.size, sel_ids=sel.ids,
-                  features=features, row0=row0, n_rows=features.shape[0], dimage=dimage, cstride=cstride, d_w=d_w)
+                  features=features, row0=row0, n_rows=features.shape[0], dimage=dimage, cstride=cstride, d_w=d_w,
+                  walk_from=walk_from, walk_to=walk_to)
     return d_w
 
 
@@ -266,7 +307,9 @@ def splat_backward(sel: Selection, d_alpha: cla.Array) -> cla.Array:
     t = transpose(sel)
     d_splats = device_empty(rt, (sel.n_gaussians, 8), np.float32)
     # splat_backward reads no feature rows; blend.cl is built with some row vector width all the same
-    rt.launch("splat_backward", sel.n_gaussians, defines={"VW": 1, "NV": 1}, n=sel.n_gaussians,
-              n_chunks=t.chunks, cursor=t.cursor, t_ray=t.ray, t_entry=t.entry, d_alpha=d_alpha,
-              splats=sel.plan.splats, **_ray_pixels(sel), d_splats=d_splats)
+    for walk_from, walk_to in walk_windows(rt.loop_limit, longest_segment(sel) if rt.loop_limit else 0, SPLAT_LOOPS):
+        rt.launch("splat_backward", sel.n_gaussians, defines={"VW": 1, "NV": 1}, n=sel.n_gaussians,
+                  n_chunks=t.chunks, cursor=t.cursor, t_ray=t.ray, t_entry=t.entry, d_alpha=d_alpha,
+                  splats=sel.plan.splats, **_ray_pixels(sel), d_splats=d_splats, walk_from=walk_from,
+                  walk_to=walk_to)
     return d_splats

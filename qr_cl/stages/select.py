@@ -26,7 +26,7 @@ import pyopencl as cl
 import pyopencl.array as cla
 
 from ..runtime import (BLOCK_GROUP, SAMPLERS, TILE, Runtime, check_buffer, device_empty, device_zeros, exclusive_scan,
-                       last_value, to_device)
+                       last_value, to_device, walk_windows)
 from .binning import SORT_BYTES_PER_KEY, RasterPlan
 
 if TYPE_CHECKING:
@@ -144,30 +144,68 @@ def ray_launch(plan: RasterPlan, pixels: np.ndarray | None) -> tuple[int, int]:
     return len(pixels), 0
 
 
-def ray_blocks(plan: RasterPlan, pixels: np.ndarray | None) -> tuple[int, dict]:
-    """(global size, arguments) of a kernel with one work-item per block of rays (BLOCK_ARGS of
-    kernels/common.h): the whole image in blocks of a tile row; a pixel subset grouped by tile
-    (stable order) into blocks of at most TILE rays: blocks [B, 4] = (first, count, tile, 0) into
-    order [P], the ray indices sorted by tile. B is a multiple of TILE, the work-group size of
-    block kernels (:data:`BLOCK_GROUP`)."""
+def ray_blocks(plan: RasterPlan, pixels: np.ndarray | None, per_block: int, pad_to: int = 1) -> tuple[int, dict]:
+    """(blocks, arguments) of a kernel walking rays in blocks of up to ``per_block`` rays of one
+    tile (BLOCK_ARGS of kernels/common.h): the whole image in blocks of per_block consecutive
+    pixels of a tile (a tile row for the block walk, a tile or part of one for the tile walk:
+    ``tiles * TILE * TILE / per_block`` blocks); a pixel subset grouped by tile (stable order) into
+    blocks of at most per_block rays: blocks [B, 4] = (first, count, tile, 0) into order [P], the
+    ray indices sorted by tile, B padded with empty blocks to a multiple of ``pad_to``."""
     rt = plan.runtime
     if pixels is None:
         unused = device_zeros(rt, 4, np.int32)
-        return plan.tiles_x * plan.tiles_y * TILE, dict(plan.ray_args(), full=1, pixels=unused,
-                                                          order=unused, blocks=unused)
+        return plan.tiles_x * plan.tiles_y * TILE * TILE // per_block, dict(
+            plan.ray_args(), full=1, pixels=unused, order=unused, blocks=unused)
     tile = (pixels[:, 1] // TILE) * plan.tiles_x + pixels[:, 0] // TILE
     order = np.argsort(tile, kind="stable").astype(np.int32)
     sorted_tile = tile[order]
     starts = np.flatnonzero(np.r_[True, sorted_tile[1:] != sorted_tile[:-1]])
     run_len = np.diff(np.r_[starts, len(order)])
-    per_run = -(-run_len // TILE)                                   # blocks per run of one tile
+    per_run = -(-run_len // per_block)                              # blocks per run of one tile
     run = np.repeat(np.arange(len(starts)), per_run)                # the run of each block
-    first = starts[run] + TILE * (np.arange(len(run)) - np.repeat(np.cumsum(per_run) - per_run, per_run))
-    blocks = np.zeros((-(-len(run) // TILE) * TILE, 4), np.int64)   # padded with empty blocks
-    blocks[:len(run), :3] = np.stack([first, np.minimum(TILE, starts[run] + run_len[run] - first),
+    first = starts[run] + per_block * (np.arange(len(run)) - np.repeat(np.cumsum(per_run) - per_run, per_run))
+    blocks = np.zeros((-(-len(run) // pad_to) * pad_to, 4), np.int64)
+    blocks[:len(run), :3] = np.stack([first, np.minimum(per_block, starts[run] + run_len[run] - first),
                                       sorted_tile[first]], 1)
     return len(blocks), dict(plan.ray_args(), full=0, pixels=to_device(rt, pixels, np.int32),
                              order=to_device(rt, order, np.int32), blocks=to_device(rt, blocks, np.int32))
+
+
+def step_loops(rt: Runtime, sampler: str, k: int) -> int:
+    """The loop iterations a selection kernel's work-item may make per list position it walks (the
+    unit of :func:`qr_cl.runtime.walk_windows`), at most: the tile walk's batch loops plus, per
+    position, Q-Render's boundary search (up to K), top-K's heap (2 log2 K); the block walk's the
+    same for each of its TILE lanes, with the lane loops around them."""
+    heap = 2 * max(k, 1).bit_length() + 4
+    if rt.gpu_shaped:
+        return {"quantile": k + 4, "stratified": k + 4, "topk": heap, "volume": 4}[sampler]
+    return {"quantile": 4 * TILE + 2 * k + 8, "stratified": 4 * TILE + 2 * k + 8, "topk": TILE * heap,
+            "volume": TILE + 4}[sampler]
+
+
+class Walk:
+    """How a runtime walks the tile lists of a plan for a selection kernel: the block walk (CPU
+    shapes: kernel ``name``, work-groups of BLOCK_GROUP blocks of TILE rays) or the tile walk (GPU
+    shapes: kernel ``tile_<name>``, a work-group of GROUP_RAYS rays per block), in the windows
+    :func:`qr_cl.runtime.walk_windows` gives, with the rays' walk state between windows in
+    ``state_f`` [P, 8] float32 and ``state_i`` [P, 4] int32 (one slot each when one window)."""
+
+    def __init__(self, plan: RasterPlan, pixels: np.ndarray | None, n_rays: int, loops: int) -> None:
+        rt = self.rt = plan.runtime
+        self.per_block = rt.group_rays if rt.gpu_shaped else TILE
+        self.blocks, self.rays = ray_blocks(plan, pixels, self.per_block, 1 if rt.gpu_shaped else BLOCK_GROUP[0])
+        self.windows = walk_windows(rt.loop_limit, plan.longest_list if rt.loop_limit else 0, loops)
+        slots = n_rays if len(self.windows) > 1 else 1
+        self.state = dict(state_f=device_empty(rt, slots * 8, np.float32),
+                          state_i=device_empty(rt, slots * 4, np.int32))
+
+    def launch(self, name: str, defines: dict | None = None, windows: list | None = None, **args) -> None:
+        """Run kernel ``name`` (its block or tile walk) over every window (or ``windows``)."""
+        kernel, local = (f"tile_{name.removeprefix('select_')}", (self.per_block,)) if self.rt.gpu_shaped \
+            else (name, BLOCK_GROUP)
+        for walk_from, walk_to in self.windows if windows is None else windows:
+            self.rt.launch(kernel, self.blocks * local[0] if self.rt.gpu_shaped else self.blocks, defines=defines,
+                           local_size=local, **self.rays, walk_from=walk_from, walk_to=walk_to, **self.state, **args)
 
 
 def check_sampler(sampler: str, k) -> int:
@@ -204,10 +242,11 @@ def select(plan: RasterPlan, sampler: str = "quantile", k: int = 40, pixels=None
     K = ``k`` (ignored by volume) for the whole image or the rays ``pixels`` [P,2] (x, y) in px.
 
     Cost is proportional to the number of rays (and their tile lists), not to width * height.
-    ``defer``: on CPU-shaped runtimes the K samplers' kernel is not enqueued yet but kept as the
-    Selection's ``pending`` launch, so that the first :func:`qr_cl.stages.blend.blend_forward`
-    runs it with the blend fused in (each ray blended right after it is selected: the same
-    selection and image); call :meth:`Selection.ready` before any other use.
+    ``defer``: on CPU-shaped runtimes without a loop limit the K samplers' kernel is not enqueued
+    yet but kept as the Selection's ``pending`` launch, so that the first
+    :func:`qr_cl.stages.blend.blend_forward` runs it with the blend fused in (each ray blended
+    right after it is selected: the same selection and image); call :meth:`Selection.ready`
+    before any other use.
     """
     k = check_sampler(sampler, k)
     rt = plan.runtime
@@ -221,28 +260,32 @@ def select(plan: RasterPlan, sampler: str = "quantile", k: int = 40, pixels=None
     if n_rays == 0:
         return Selection(plan, sampler, k, pixels, device_empty(rt, 1, np.int32), device_empty(rt, 1, np.float32),
                          device_zeros(rt, 1, np.int32), count, t_walk, t_sel, t_rem)
-    size, rays = ray_blocks(plan, pixels)
+    walk = Walk(plan, pixels, n_rays, step_loops(rt, sampler, k))
     if sampler == "volume":
         offsets = device_zeros(rt, n_rays, np.int32)
-        rt.launch("volume_count", size, local_size=BLOCK_GROUP, **rays, count=count, t_walk=t_walk)
+        walk.launch("volume_count", count=count, t_walk=t_walk)
         exclusive_scan(rt, count, offsets)
         total = last_value(offsets) + last_value(count[:n_rays])
         check_buffer(rt, entry_bytes(rt) * total, f"the volume selection of {n_rays} rays ({total} entries)")
         ids, weights = device_empty(rt, max(total, 1), np.int32), device_empty(rt, max(total, 1), np.float32)
-        rt.launch("volume_fill", size, local_size=BLOCK_GROUP, **rays, offsets=offsets, out_ids=ids,
-                  out_w=weights,
-                  t_sel=t_sel, t_rem=t_rem)
-    else:
-        check_buffer(rt, entry_bytes(rt) * n_rays * k, f"the {sampler} selection of {n_rays} rays x K={k}")
-        ids, weights = device_empty(rt, n_rays * k, np.int32), device_empty(rt, n_rays * k, np.float32)
-        offsets = row_offsets(q, n_rays, k)
+        walk.launch("volume_fill", offsets=offsets, out_ids=ids, out_w=weights, t_sel=t_sel, t_rem=t_rem)
+        return Selection(plan, sampler, k, pixels, ids, weights, offsets, count, t_walk, t_sel, t_rem)
+    check_buffer(rt, entry_bytes(rt) * n_rays * k, f"the {sampler} selection of {n_rays} rays x K={k}")
+    ids, weights = device_empty(rt, n_rays * k, np.int32), device_empty(rt, n_rays * k, np.float32)
+    outputs = dict(K=k, out_ids=ids, out_w=weights, count=count, t_walk=t_walk, t_sel=t_sel, t_rem=t_rem)
 
-        def launch(defines: dict | None = None, **blend_args) -> None:
-            rt.launch(f"select_{sampler}", size, defines=defines, local_size=BLOCK_GROUP, **rays, K=k,
-                      out_ids=ids, out_w=weights, count=count, t_walk=t_walk, t_sel=t_sel, t_rem=t_rem,
-                      **blend_args)
-        if defer and not rt.gpu_shaped:
-            return Selection(plan, sampler, k, pixels, ids, weights, offsets, count, t_walk, t_sel, t_rem,
-                             pending=launch)
+    def launch(defines: dict | None = None, **blend_args) -> None:
+        if sampler != "stratified":
+            walk.launch(f"select_{sampler}", defines, **outputs, **blend_args)
+        elif len(walk.windows) == 1:                  # both walks in one launch
+            walk.launch("select_stratified", defines, **outputs, **blend_args, **{"pass": 0})
+        else:
+            for pass_ in (1, 2):
+                walk.launch("select_stratified", defines, **outputs, **blend_args, **{"pass": pass_})
+    selection = Selection(plan, sampler, k, pixels, ids, weights, row_offsets(q, n_rays, k), count, t_walk, t_sel,
+                          t_rem)
+    if defer and not rt.gpu_shaped and rt.loop_limit is None:
+        selection.pending = launch
+    else:
         launch()
-    return Selection(plan, sampler, k, pixels, ids, weights, offsets, count, t_walk, t_sel, t_rem)
+    return selection

@@ -16,7 +16,7 @@ import pyopencl as cl
 import pyopencl.array as cla
 from pyopencl.scan import InclusiveScanKernel
 
-from ..runtime import TILE, device_empty, device_zeros, exclusive_scan, last_value, to_device
+from ..runtime import TILE, device_empty, device_scan_works, device_zeros, exclusive_scan, last_value, to_device
 from .binning import sort_pairs
 from .select import Selection
 
@@ -39,11 +39,21 @@ class Transpose(NamedTuple):
 def transpose(sel: Selection) -> Transpose:
     """The entries of ``sel`` grouped by Gaussian, computed once and kept in ``sel.transposed``
     (with :func:`backward_order` in ``sel.order``): :func:`sorted_transpose` on GPU-shaped
-    runtimes, :func:`counted_transpose` on CPU-shaped ones; the same bytes either way."""
+    runtimes and on devices with a loop limit (the counting sort's few work-items each walk many
+    rays), :func:`counted_transpose` on CPU-shaped ones; the same bytes either way."""
     if sel.transposed is None:
-        sel.transposed = (sorted_transpose if sel.plan.runtime.gpu_shaped else counted_transpose)(sel)
+        rt = sel.plan.runtime
+        sel.transposed = (sorted_transpose if rt.gpu_shaped or rt.loop_limit is not None else counted_transpose)(sel)
         sel.order = _backward_order(sel, sel.transposed)
     return sel.transposed
+
+
+def longest_segment(sel: Selection) -> int:
+    """The most transposed entries of one Gaussian of ``sel`` (read from the device): how far a
+    walk over a Gaussian's entries goes."""
+    t = transpose(sel)
+    ends = t.cursor.get().reshape(-1, t.chunks)[:, -1].astype(np.int64)
+    return int(np.diff(ends, prepend=0).max(initial=0))
 
 
 def backward_order(sel: Selection, g0: int = 0, g1: int | None = None) -> cla.Array:
@@ -126,5 +136,8 @@ def sorted_transpose(sel: Selection) -> Transpose:
         rt.launch("transpose_gather", total, n=total, n_gaussians=n, keys=keys, values=values, entry_ray=entry_ray,
                   entry_w=entry_w, entry_index=entry_index, t_ray=t_ray, t_w=t_w, t_entry=t_entry,
                   ends=cursor)
-        _max_scan(rt.context)(cursor)
+        if rt.loop_limit is None and device_scan_works(rt.context):
+            _max_scan(rt.context)(cursor)
+        else:
+            cursor.set(np.maximum.accumulate(cursor.get()))
     return Transpose(cursor, t_ray, t_w, t_entry, 1)

@@ -1,5 +1,6 @@
 """Fused V-Render stage (vrender.cl): full alpha blending of a RasterPlan without a stored
-selection, one kernel per image (the speed baseline; no gradients). Twin:
+selection, one kernel per image (the speed baseline; no gradients): the block walk on CPU shapes,
+the tile walk on GPU shapes, in windows on a device with a loop limit. Twin:
 :mod:`qr_cl.stages.vrender_ref`."""
 from __future__ import annotations
 
@@ -7,9 +8,13 @@ import numpy as np
 import pyopencl.array as cla
 
 from ..runtime import (BLOCK_GROUP, TILE, channel_layout, check_buffer, device_empty, host_empty, padded_vector,
-                       shared_array, streamed, to_device)
+                       shared_array, streamed, to_device, walk_windows)
 from .binning import RasterPlan
 from .blend import row_defines
+
+#: GPU shapes: the vectors of VW channels a tile_vrender work-item blends (its channel group; each
+#: group walks the tile list again, as gsplat's channel chunks do).
+GPU_VECTORS = 2
 
 
 def render_fused(plan: RasterPlan, features: cla.Array, channels: int,
@@ -44,12 +49,23 @@ def render_fused(plan: RasterPlan, features: cla.Array, channels: int,
     if image.shape != (h, w, cstride) or image.dtype != np.float32 or not image.flags.c_contiguous:
         raise ValueError(f"out must be a C-contiguous float32 array of shape {(h, w, cstride)}")
     alpha, depth = device_empty(rt, h * w), device_empty(rt, h * w)
-    with shared_array(rt, image, "rw" if accumulate else "w") as image_dev:
-        rt.launch("vrender", plan.tiles_x * plan.tiles_y * TILE, defines={"VW": vw, "NV": nv, **row_defines(features)},
-                  local_size=BLOCK_GROUP, ranges=plan.ranges, ids=plan.ids, splats=plan.splats, features=features,
-                  row0=row0, n_rows=features.shape[0], cstride=cstride, width=w, height=h, tiles_x=plan.tiles_x,
-                  background=to_device(rt, padded_vector(background, channels, cstride)),
-                  use_bg=background is not None, accumulate=accumulate, stream=streamed(image.nbytes),
-                  image=image_dev, alpha=alpha, depth=depth)
+    if rt.gpu_shaped:          # the tile walk: a work-group per tile, a work-item per pixel and channel group
+        nv = GPU_VECTORS if (cstride // vw) % GPU_VECTORS == 0 else 1
+        size = (plan.tiles_x * plan.tiles_y * TILE * TILE, cstride // (vw * nv))
+        kernel, local, loops = "tile_vrender", (rt.group_rays, 1), nv + 6
+    else:                      # the block walk: BATCH-Gaussian flushes of TILE rows x cstride / VW vectors
+        size, kernel, local = plan.tiles_x * plan.tiles_y * TILE, "vrender", BLOCK_GROUP
+        loops = 2 * TILE * (cstride // vw) + TILE + 4
+    windows = walk_windows(rt.loop_limit, plan.longest_list if rt.loop_limit else 0, loops)
+    states = [device_empty(rt, (h * w if len(windows) > 1 else 1) * 4, np.float32) for _ in range(2)]
+    with shared_array(rt, image, "rw" if accumulate or len(windows) > 1 else "w") as image_dev:
+        for i, (walk_from, walk_to) in enumerate(windows):
+            rt.launch(kernel, size, defines={"VW": vw, "NV": nv, **row_defines(features)}, local_size=local,
+                      ranges=plan.ranges, ids=plan.ids, splats=plan.splats, features=features, row0=row0,
+                      n_rows=features.shape[0], cstride=cstride, width=w, height=h, tiles_x=plan.tiles_x,
+                      background=to_device(rt, padded_vector(background, channels, cstride)),
+                      use_bg=background is not None, accumulate=accumulate, stream=streamed(image.nbytes),
+                      image=image_dev, alpha=alpha, depth=depth, walk_from=walk_from, walk_to=walk_to,
+                      state_in=states[i % 2], state_out=states[1 - i % 2])
     return (image[:, :, :channels], alpha.get(ary=host_empty(h * w)).reshape(h, w, 1),
             depth.get(ary=host_empty(h * w)).reshape(h, w, 1))
