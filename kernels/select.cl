@@ -487,16 +487,18 @@ __kernel void tile_stratified(BLOCK_ARGS, const int pass, WINDOW_ARGS, STATE_ARG
             const float sq = next_T * next_T;     /* not fused into the sum, as in the lanes */
             sum_sq += sq;
             used += 1.f)
-        if (p < 0) return;
-        if (pass == 1 && !last) {
-            state_f[p].s0123 = (float4)(sum, sum_sq, used, T);
-            state_i[p].z = done ? -1 : 0;
-            return;
-        }
         const float2 stats = transmittance_stats(sum, sum_sq, used);
         mu = stats.x; sigma = stats.y; t_end = T;
-        if (pass == 1) { state_f[p].s012 = (float3)(mu, sigma, t_end); return; }
-        from = range.x;
+        if (pass == 1) {                              /* the whole group returns: pass is uniform */
+            if (p >= 0 && !last) {
+                state_f[p].s0123 = (float4)(sum, sum_sq, used, T);
+                state_i[p].z = done ? -1 : 0;
+            } else if (p >= 0) {
+                state_f[p].s012 = (float3)(mu, sigma, t_end);
+            }
+            return;
+        }
+        from = range.x;                               /* pass 0: every work-item walks again */
     }
     float T = 1.f, TQ = 1.f;
     int k = 0, n = 0, done = p < 0;

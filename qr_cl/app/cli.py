@@ -11,7 +11,8 @@ from tqdm import tqdm
 
 from ..render import render_volume_fused
 from ..render.selfcheck import check_in_child
-from ..runtime import BufferLimitError, HostMemoryError, NoDeviceError, choose_device, list_devices, trial_run
+from ..runtime import (BufferLimitError, HostMemoryError, NoDeviceError, choose_device, list_devices, loop_limit,
+                       trial_run)
 from ..runtime.device import implementation, self_check_enabled
 from ..scene import SceneFormatError, load_cameras, load_layout_instance, load_scene, orbit_cameras
 from .images import save_alpha, save_depth, save_rgb
@@ -40,8 +41,12 @@ def _cmd_devices(args: argparse.Namespace) -> int:
         except NoDeviceError:
             chosen = None
     for pi, di, platform, dev in devices:
-        status = trial_run(dev) or ("trial kernels ok, " + (check_in_child(pi, di) if self_check_enabled()
-                                                            else "self-check off (QR_CL_SELF_CHECK)"))
+        status = trial_run(dev)
+        if status is None:
+            limit = loop_limit(dev)
+            status = ("trial kernels ok, " + (f"loops end after {limit} iterations (walks in windows), "
+                                              if limit else "")
+                      + (check_in_child(pi, di) if self_check_enabled() else "self-check off (QR_CL_SELF_CHECK)"))
         print(f"{'*' if dev.int_ptr == chosen else ' '} [{pi}:{di}] {implementation(dev)}  "
               f"({'GPU' if dev.type & 4 else 'CPU' if dev.type & 2 else 'other'}, "
               f"{dev.max_compute_units} compute units, {dev.global_mem_size >> 20} MiB) - {status}")

@@ -127,7 +127,8 @@ def _record(rt: Runtime) -> Path:
     shapes, every kernel source and build constant, and this check's own source (a pass of an
     earlier check, which rendered less, is not taken for one of this)."""
     key = hashlib.sha256()
-    for part in (implementation(rt.device), str(rt.gpu_shaped), str(rt.accumulator_floats),
+    for part in (implementation(rt.device), str(rt.gpu_shaped), str(rt.accumulator_floats), str(rt.loop_limit),
+                 str(rt.group_limit),
                  json.dumps(KERNEL_CONSTANTS, sort_keys=True), Path(__file__).read_text(),
                  *(kernel_source(f) for f in sorted(set(kernel_files().values())))):
         key.update(part.encode())

@@ -38,6 +38,15 @@ __kernel void trial(__global float *x) { int i = get_global_id(0); x[i] = 2.0f *
 
 /* acc = the iterations a work-item really made of a loop of n (ones[] holds 1s the compiler cannot
    see, so the loop is neither folded nor vectorised away). */
+/* A kernel with a barrier and local memory: its CL_KERNEL_WORK_GROUP_SIZE is the device's work-group
+   limit for such kernels (Mesa 22's llvmpipe: 32, below the 1024 the device reports). */
+__kernel void group_probe(__global float *x) {
+    __local float t[16];
+    t[get_local_id(0) % 16] = x[get_global_id(0)];
+    barrier(CLK_LOCAL_MEM_FENCE);
+    x[get_global_id(0)] = t[(get_local_id(0) + 1) % 16];
+}
+
 __kernel void loop_probe(const int n, __global const int *ones, __global int *acc) {
     int s = 0;
     for (int k = 0; k < n; k++) s += ones[k & 63];
@@ -295,6 +304,8 @@ class Runtime:
     (that is how tests run both shapes on one device). ``loop_limit``: the loop iterations a
     work-item may make on this device (:func:`loop_limit`; None: no limit), by which kernels
     walk their lists in windows (:func:`walk_windows`); settable like ``gpu_shaped``.
+    ``group_limit``: the most work-items of a work-group with barriers the device runs (the
+    device's limit, or less: a probe kernel's CL_KERNEL_WORK_GROUP_SIZE).
     :meth:`capped_buffers` makes :attr:`max_buffer_bytes` report less on the calling thread, so
     that its tables and ray sets are split as on a device with smaller buffers (the render check
     splits a table on every device with it; other threads' renders are not affected).
@@ -306,6 +317,7 @@ class Runtime:
     pool: cl_tools.MemoryPool = field(init=False, repr=False)
     gpu_shaped: bool = field(init=False)
     loop_limit: int | None = field(init=False)
+    group_limit: int = field(init=False)
     _caps: threading.local = field(init=False, default_factory=threading.local, repr=False)
     _programs: dict = field(init=False, default_factory=dict)
     _group_limits: dict = field(init=False, default_factory=dict, repr=False)
@@ -318,6 +330,9 @@ class Runtime:
         self.pool = cl_tools.MemoryPool(cl_tools.ImmediateAllocator(self.queue))
         self.gpu_shaped = gpu_shapes(self.device)
         self.loop_limit = loop_limit(self.device)
+        probe = cl.Kernel(cl.Program(self.context, _TRIAL_SOURCE).build(), "group_probe")
+        self.group_limit = min(int(self.device.max_work_group_size), int(probe.get_work_group_info(
+            cl.kernel_work_group_info.WORK_GROUP_SIZE, self.device)))
 
     @property
     def narrow_rows(self) -> bool:
@@ -332,10 +347,10 @@ class Runtime:
         and its limits when none does."""
         local = int(self.device.local_mem_size)
         for size in choices:
-            if size <= self.device.max_work_group_size and size * local_bytes + 64 <= local:
+            if size <= self.group_limit and size * local_bytes + 64 <= local:
                 return size
         raise DeviceLimitError(
-            f"{implementation(self.device)} allows work-groups of {self.device.max_work_group_size} work-items "
+            f"{implementation(self.device)} allows work-groups of {self.group_limit} work-items "
             f"and {local} bytes of local memory; {what} need work-groups of {choices[-1]} with "
             f"{choices[-1] * local_bytes + 64} bytes")
 
@@ -452,8 +467,9 @@ class Runtime:
             raise TypeError(f"kernel {name}({', '.join(names)}): missing {missing}, unknown {unknown}")
         size = (global_size,) if isinstance(global_size, int) else tuple(global_size)
         if local_size is None and self.gpu_shaped:
-            local_size = (GROUP_SIZE,) + (1,) * (len(size) - 1)
-            size = (-(-size[0] // GROUP_SIZE) * GROUP_SIZE,) + size[1:]
+            group = min(GROUP_SIZE, self.group_limit)
+            local_size = (group,) + (1,) * (len(size) - 1)
+            size = (-(-size[0] // group) * group,) + size[1:]
         if local_size is not None:
             self._check_group(name, kernel, int(np.prod(local_size)))
         bound = [bind(name, a, args[a.name]) for a in declared]

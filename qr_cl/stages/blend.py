@@ -62,7 +62,7 @@ def work_groups(rt: Runtime, rows: int, n_chunks: int) -> tuple[int, tuple[int, 
     work-items: work-groups of CPU_GROUP_ROWS rows x all chunks (rows padded; the kernels return
     past their count), so that PoCL keeps at most that many work-items' accumulators (up to 2 KB
     each) on a thread's stack; too large groups are left to the runtime."""
-    if CPU_GROUP_ROWS * n_chunks > rt.device.max_work_group_size:
+    if CPU_GROUP_ROWS * n_chunks > rt.group_limit:
         return rows, None
     return -(-rows // CPU_GROUP_ROWS) * CPU_GROUP_ROWS, (CPU_GROUP_ROWS, n_chunks)
 

@@ -168,6 +168,7 @@ def exercise() -> None:
         qr_cl.render_volume_fused(*geo, sh, cam.viewmat, cam.K, W, H, sh_degree=degree)
         print(f"RGB from SH degree {degree}, forward and backward: ok", flush=True)
 
+    walks_exercise(rt, geo, cam, feats, pixels)
     gpu_shaped, rt.gpu_shaped = rt.gpu_shaped, False   # CPU shapes: each K sampler with the blend fused in
     for sampler in ("quantile", "topk", "stratified"):
         for px, background in ((None, None), (pixels, bg)):
@@ -183,6 +184,35 @@ def exercise() -> None:
     roofline.stream_bandwidth(rt, mib=1, rounds=1)
     print("roofline fma_peak, triad: ok", flush=True)
     rt.queue.finish()
+
+
+#: The loop limit under which walks_exercise walks in windows: the tiny scene's lists (up to 76
+#: Gaussians) then take several windows in every walk.
+WINDOWS_LIMIT = 512
+
+
+def walks_exercise(rt, geo, cam, feats, pixels) -> None:
+    """Both walks of every sampler: the block walk (CPU shapes) and the tile walk (GPU shapes), in
+    one launch (the samplers exercise() leaves to one shape) and in windows (a loop limit of
+    WINDOWS_LIMIT), forward and backward, and the fused V-Render."""
+    import torch
+
+    import qr_cl
+    gpu_shaped = rt.gpu_shaped
+    runs = [(False, None, ("volume", "stratified")), (True, None, ("stratified",))]
+    runs += [(shape, WINDOWS_LIMIT, ("volume", "quantile", "topk", "stratified")) for shape in (False, True)]
+    for rt.gpu_shaped, rt.loop_limit, samplers in runs:
+        for sampler in samplers:
+            f = torch.from_numpy(feats).requires_grad_(True)
+            img, _, _ = qr_cl.rasterize(*geo, f, cam.viewmat, cam.K, W, H, sampler=sampler, k=4,
+                                        pixels=pixels if sampler == "topk" else None)
+            img.sum().backward()
+            assert bool(torch.isfinite(f.grad).all())
+        if rt.loop_limit:
+            qr_cl.render_volume_fused(*geo, feats, cam.viewmat, cam.K, W, H)
+        print(f"{'tile' if rt.gpu_shaped else 'block'} walks, loop limit {rt.loop_limit}: {', '.join(samplers)}"
+              f"{' and the fused V-Render' if rt.loop_limit else ''} forward+backward: ok", flush=True)
+    rt.gpu_shaped, rt.loop_limit = gpu_shaped, None
 
 
 def row_parts_exercise(rt, geo, cam, feats, wide, bg, pixels) -> None:

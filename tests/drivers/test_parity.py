@@ -7,11 +7,13 @@ gradient), a pixel subset, the SH colour kernel, render_volume_fused (image, alp
 rasterization (image and gradients w.r.t. means, quats, scales, opacities and colours). Each
 implementation runs twice with one fresh kernel cache: the first run builds from source, the
 second loads pyopencl's cached binaries (which carry no argument info on Intel's runtime). Every
-output must equal PoCL's within 1e-4 of its largest value (the K samplers' outputs in all but 0.1 %
-of their rows: rays at a boundary by float rounding), or the implementation must be refused
-with a message that names what failed (rusticl 22.3: the loop limit). With the self-check off,
-a refused implementation must still never crash. The kernel-against-twin tests run on Intel's
-runtime too. Skipped for implementations not installed.
+output must equal PoCL's within 1e-4 of its largest value (a float16 table's gradient, rounded to
+float16, within 1e-3) in all but 0.1 % of its rows: rays whose transmittance meets a K sampler's
+boundary, or whose Gaussian's alpha meets the 1/255 cut or whose T meets V-Render's stop, at float
+rounding, decide differently under another compiler. rusticl (llvmpipe) ends loops after 65535
+iterations, so it walks in windows; its compiler does not fuse multiply-adds as PoCL's and
+Intel's do, so its projection differs from theirs in the last bits. The kernel-against-twin tests
+run on Intel's runtime too. Skipped for implementations not installed.
 
 Run as a script (``python tests/drivers/test_parity.py OUT.npz SCENE...``) this file is the child.
 """
@@ -25,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from qr_cl.runtime.implementations import environment, installed
+from qr_cl.runtime.implementations import NAMES, environment, installed
 
 W, H, CHANNELS, K = 160, 120, 64, 10
 RTOL = 1e-4
@@ -127,25 +129,26 @@ def scenes_here(shared: bool) -> list[str]:
     return SCENES if shared else ["random"]
 
 
-#: Outputs of samplers that select K Gaussians per ray at transmittance boundaries.
-K_SAMPLED = ("quantile/", "topk/", "stratified/", "pixels/", "half/", "rasterization-quantile/")
-#: The share of rows (pixels, or Gaussians of a gradient) of a K sampler's output that may differ:
-#: a ray whose transmittance meets a boundary at float rounding selects differently under another
-#: compiler (the dense room's stratified sampler on Intel's runtime: 2 of 19,200 rays).
+#: The share of rows (pixels, or Gaussians of a gradient) of an output that may differ: rays at a
+#: threshold by float rounding (a K sampler's boundary, the alpha cut, V-Render's stop) decide
+#: differently under another compiler (the dense room's stratified sampler on Intel's runtime: 2 of
+#: 19,200 rays; the donut's V-Render on rusticl: 6).
 FLIPPED_ROWS = 1e-3
+#: Outputs of a float16 table's gradient (rounded to float16 at the end): one float16 rounding apart
+#: where the float32 sums differ in their last bit.
+HALF_RTOL = 1e-3
 
 
 def compare(got: dict, want: dict) -> list[str]:
-    """The outputs of ``got`` off ``want``'s by more than RTOL of want's largest value (for the K
-    samplers: in more than FLIPPED_ROWS of their rows)."""
+    """The outputs of ``got`` off ``want``'s by more than RTOL of want's largest value (HALF_RTOL
+    for a float16 table's) in more than FLIPPED_ROWS of their rows."""
     bad = []
     assert sorted(got) == sorted(want)
     for key in sorted(want):
         scale = max(float(np.abs(want[key]).max(initial=0)), 1e-30)
-        off = np.abs(got[key] - want[key]) > RTOL * scale
+        off = np.abs(got[key] - want[key]) > (HALF_RTOL if "half/" in key else RTOL) * scale
         rows = off.reshape(-1, off.shape[-1]).any(1) if off.ndim > 1 else off
-        allowed = int(FLIPPED_ROWS * len(rows)) if any(s in key for s in K_SAMPLED) else 0
-        if rows.sum() > allowed:
+        if rows.sum() > int(FLIPPED_ROWS * len(rows)):
             err = float(np.abs(got[key] - want[key]).max()) / scale
             bad.append(f"{key}: {err:.2e} in {int(rows.sum())} of {len(rows)} rows")
     return bad
@@ -182,17 +185,31 @@ def check_equal_first_and_cached(name: str, shape: str, scenes: list[str], refer
         assert not bad, f"{name}, {shape} shapes, {run_name} run differs from PoCL: {bad}"
 
 
+@pytest.mark.parametrize("name", NAMES)
 @pytest.mark.parametrize("shape", SHAPES)
-def test_intel_equals_pocl_first_and_cached(shape, reference, tmp_path):
-    needs("intel")
-    check_equal_first_and_cached("intel", shape, scenes_here(reference.shared), reference, tmp_path)
+def test_implementation_equals_pocl_first_and_cached(name, shape, reference, tmp_path):
+    needs(name)
+    check_equal_first_and_cached(name, shape, scenes_here(reference.shared), reference, tmp_path)
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("name", NAMES)
 @pytest.mark.parametrize("shape", SHAPES)
-def test_intel_equals_pocl_on_the_dense_room(shape, reference, tmp_path):
-    needs("intel")
-    check_equal_first_and_cached("intel", shape, ["dense"], reference, tmp_path)
+def test_implementation_equals_pocl_on_the_dense_room(name, shape, reference, tmp_path):
+    needs(name)
+    check_equal_first_and_cached(name, shape, ["dense"], reference, tmp_path)
+
+
+def test_rusticl_passes_the_self_check_walking_in_windows():
+    """Mesa 22.3's llvmpipe ends loops after 65535 iterations: measured by the loop probe, so its
+    walks go in windows, and it passes the render check (it was refused before windows)."""
+    needs("rusticl")
+    devices = subprocess.run([sys.executable, "-m", "qr_cl.app.cli", "devices"], env=environment("rusticl"),
+                             capture_output=True, text=True, timeout=600)
+    assert devices.returncode == 0, devices.stdout + devices.stderr[-3000:]
+    line = next(line for line in devices.stdout.splitlines() if "rusticl" in line)
+    assert line.startswith("*") and "loops end after 65535 iterations (walks in windows)" in line, line
+    assert "render check passed" in line, line
 
 
 #: The kernel-against-twin test modules that also run on the other implementations (paths under
@@ -227,40 +244,6 @@ def test_kernel_tests_pass_on_intel(tmp_path, data_dir):
                 child.wait()
     failed = [out[-4000:] for child, out in zip(children, outputs) if child.returncode]
     assert not failed, "\n\n".join(failed)
-
-
-@pytest.fixture(scope="module")
-def rusticl_cache(tmp_path_factory) -> Path:
-    """One kernel cache for the rusticl runs with the check off: most of a run is llvmpipe's
-    compiler, and most programs are the same on both launch shapes."""
-    return tmp_path_factory.mktemp("rusticl-cache")
-
-
-@pytest.mark.parametrize("shape", SHAPES)
-def test_rusticl_is_equal_or_refused_by_name(shape, reference, tmp_path):
-    """Mesa 22.3's llvmpipe ends loops after 65535 iterations: refused, naming the loop limit."""
-    needs("rusticl")
-    run = run_child("rusticl", shape, tmp_path, tmp_path / "out.npz", ["random"], reference.data)
-    if run.returncode == 0:
-        assert not compare(dict(np.load(tmp_path / "out.npz")), reference(shape, ["random"]))
-        return
-    last = run.stderr.strip().splitlines()[-3:]
-    assert run.returncode == 1 and "NoDeviceError" in "\n".join(last), run.stderr[-3000:]
-    assert "rusticl" in run.stderr and "loop limit" in run.stderr, run.stderr[-3000:]
-    devices = subprocess.run([sys.executable, "-m", "qr_cl.app.cli", "devices"], env=environment("rusticl"),
-                             capture_output=True, text=True, timeout=300)
-    assert devices.returncode == 2 and "rusticl" in devices.stdout and "loop limit" in devices.stdout
-    assert "qr-cl refuses to render here" in devices.stdout
-
-
-@pytest.mark.parametrize("shape", SHAPES)
-def test_rusticl_never_crashes_with_the_check_off(shape, reference, rusticl_cache, tmp_path):
-    """Refusal aside: the kernels' wrong answers there must not become a crash (top-K's unwritten
-    counts once sent the backward's transpose into unmapped memory)."""
-    needs("rusticl")
-    run = run_child("rusticl", shape, rusticl_cache, tmp_path / "out.npz", ["fox"] if reference.shared else ["random"],
-                    reference.data, QR_CL_SELF_CHECK="off")
-    assert run.returncode == 0, f"rusticl {shape} (check off) died ({run.returncode}):\n{run.stderr[-3000:]}"
 
 
 if __name__ == "__main__":

@@ -1,28 +1,52 @@
-"""A device is used only after its self-check: the loop probe (drivers that end long loops early
-without an error, as Mesa 22's llvmpipe does) and the render check against the float64 twins.
-Failing devices are refused with a message naming the implementation and what failed."""
+"""A device is used only after its self-check: the render check against the float64 twins. The
+loop probe measures whether a device's driver ends long loops early without an error (as Mesa 22's
+llvmpipe does); such a device walks its lists in windows. Failing devices are refused with a
+message naming the implementation and what failed."""
 import threading
 from pathlib import Path
 
 import pytest
 
 from qr_cl.render import selfcheck
-from qr_cl.runtime import device, runtime
+from qr_cl.runtime import Runtime, device, runtime
 
 
-def test_a_device_that_ends_loops_early_is_refused(monkeypatch):
-    cut = device._TRIAL_SOURCE.replace("for (int k = 0; k < n; k++)", "for (int k = 0; k < min(n, 65535); k++)")
-    assert cut != device._TRIAL_SOURCE
+def test_a_device_that_ends_loops_early_walks_in_windows(monkeypatch, tmp_path):
+    whole = device._TRIAL_SOURCE
+    cut = whole.replace("for (int k = 0; k < n; k++)", "for (int k = 0; k < min(n, 65535); k++)")
+    assert cut != whole
     monkeypatch.setattr(device, "_TRIAL_SOURCE", cut)
-    reason = device.trial_run(device.choose_device.__globals__["_candidates"](None, None)[0])
-    assert reason.startswith(f"loop limit: a loop of {device.LOOP_PROBE} iterations ended after 65535")
-    monkeypatch.delenv("QR_CL_DEVICE", raising=False)
-    monkeypatch.delenv("PYOPENCL_CTX", raising=False)
-    with pytest.warns(UserWarning), pytest.raises(device.NoDeviceError) as err:
-        device.choose_device()
-    assert "loop limit" in str(err.value) and "Portable Computing Language" in str(err.value)
-    monkeypatch.setenv("QR_CL_SELF_CHECK", "off")        # the probe is what refused it
-    assert device.choose_device() is not None
+    monkeypatch.delenv("QR_CL_LOOP_LIMIT", raising=False)
+    device._probed_loop_limit.cache_clear()
+    try:
+        chosen = device.choose_device()
+        assert device.trial_run(chosen) is None                 # used, not refused
+        assert device.loop_limit(chosen) == 65535
+        rt = Runtime(chosen)
+        assert rt.loop_limit == 65535
+    finally:
+        device._probed_loop_limit.cache_clear()
+        monkeypatch.setattr(device, "_TRIAL_SOURCE", whole)
+    assert device.loop_limit(chosen) is None                    # PoCL's own loops run whole
+    monkeypatch.setenv("QR_CL_LOOP_LIMIT", "4096")
+    assert device.loop_limit(chosen) == 4096
+    for bad in ("12", "many"):
+        monkeypatch.setenv("QR_CL_LOOP_LIMIT", bad)
+        with pytest.raises(ValueError, match="QR_CL_LOOP_LIMIT"):
+            device.loop_limit(chosen)
+
+
+def test_the_render_check_passes_with_walks_in_windows(monkeypatch, tmp_path):
+    monkeypatch.setattr(runtime(), "loop_limit", 1024)
+    assert selfcheck.render_check() == []
+
+
+def test_walk_windows_cover_the_longest_list():
+    assert device.walk_windows(None, 10_000, 7) == [(0, device.WALK_ALL)]
+    windows = device.walk_windows(1024, 1000, 8)               # 64 positions a window
+    assert windows[0] == (0, 64) and windows[-1][1] >= 1000 and len(windows) == 16
+    assert all(b == c for (_, b), (c, _) in zip(windows, windows[1:]))
+    assert device.walk_windows(1024, 0, 8) == [(0, 64)]        # empty lists: one window finishes them
 
 
 def test_the_render_check_passes_here_and_is_remembered(monkeypatch, tmp_path):

@@ -1,5 +1,6 @@
-"""GPU-shaped launches (work-groups over padded sizes, device sorts, many-work-item transposes),
-forced on PoCL (``Runtime.gpu_shaped``), give the same bytes as the CPU-shaped ones."""
+"""GPU-shaped launches (the tile walk, GPU blends, device sorts, many-work-item transposes),
+forced on PoCL (``Runtime.gpu_shaped``), give the same bytes as the CPU-shaped ones; so do walks
+in windows (``Runtime.loop_limit``, as on a device whose driver ends long loops)."""
 import numpy as np
 import pyopencl.array as cla
 import pytest
@@ -7,7 +8,7 @@ import torch
 
 import qr_cl
 from qr_cl.render import rasterize_plan
-from qr_cl.runtime import runtime
+from qr_cl.runtime import Runtime, runtime
 from qr_cl.runtime.device import gpu_shapes
 from qr_cl.stages import blend_backward, select, transpose
 
@@ -93,3 +94,69 @@ def test_pyopencl_scan_and_sort_are_checked_on_the_device(monkeypatch):
     k, v = binning.sort_pairs(rt, to_device(rt, keys, np.uint64), to_device(rt, np.arange(1000), np.int32), 40)
     np.testing.assert_array_equal(k.get(), np.sort(keys, kind="stable"))
     np.testing.assert_array_equal(v.get(), np.argsort(keys, kind="stable"))
+
+
+def every_path(scene) -> dict[str, bytes]:
+    """The bytes of every public path's outputs on ``scene``: rasterize with each sampler (image,
+    alpha, feature gradient) and at a pixel subset, a float16 table, render_volume_fused, and
+    rasterization's gradients w.r.t. the Gaussians."""
+    m, q, s, o, v, K, w, h = scene
+    rng = np.random.default_rng(4)
+    feats = rng.normal(size=(len(m), 24)).astype(np.float32)
+    weights = torch.from_numpy(rng.normal(size=(h, w, 24)).astype(np.float32))
+    pixels = rng.integers(0, (w, h), (300, 2))
+    out = {}
+    for sampler in ("volume", "quantile", "topk", "stratified"):
+        for px in (None, pixels):
+            f = torch.from_numpy(feats).requires_grad_(True)
+            img, alpha, _ = qr_cl.rasterize(m, q, s, o, f, v, K, w, h, sampler=sampler, k=6, pixels=px)
+            (img * (weights if px is None else weights[px[:, 1], px[:, 0]])).sum().backward()
+            for name, t in (("image", img), ("alpha", alpha), ("dfeatures", f.grad)):
+                out[f"{sampler}/{px is None}/{name}"] = t.detach().numpy().tobytes()
+    f = torch.from_numpy(feats).half().requires_grad_(True)
+    img, _, _ = qr_cl.rasterize(m, q, s, o, f, v, K, w, h, sampler="quantile", k=6)
+    (img * weights).sum().backward()
+    out["half"], out["half/d"] = img.detach().numpy().tobytes(), f.grad.numpy().tobytes()
+    fused, alpha, meta = qr_cl.render_volume_fused(m, q, s, o, feats, v, K, w, h, background=np.ones(24))
+    out["fused"] = fused.numpy().tobytes() + alpha.numpy().tobytes() + meta["depth"].tobytes()
+    params = [torch.from_numpy(np.asarray(a, np.float32)).requires_grad_(True) for a in (m, q, s, o, feats[:, :3])]
+    img, _, _ = qr_cl.rasterization(*params, torch.from_numpy(v[None]), torch.from_numpy(K[None]), w, h, k=6)
+    (img[0] * weights[..., :3]).sum().backward()
+    out["rasterization"] = img.detach().numpy().tobytes() + b"".join(p.grad.numpy().tobytes() for p in params)
+    return out
+
+
+def test_walk_windows_and_launch_shapes_give_the_same_bytes(random_scene, monkeypatch):
+    """Each pair of launch shape and loop limit (None: one launch per walk; 64: windows of a few
+    list positions, the rays' state kept between launches) renders every path with the same bytes,
+    and the windowed runs did launch walks past their first window."""
+    rt = runtime()
+    windows = []
+    launch = Runtime.launch
+
+    def counted(self, name, *args, walk_from=None, **kwargs):
+        if walk_from is not None:
+            windows.append((name, walk_from))
+            kwargs["walk_from"] = walk_from
+        launch(self, name, *args, **kwargs)
+    monkeypatch.setattr(Runtime, "launch", counted)
+    runs = {}
+    for shape in ("cpu", "gpu"):
+        for limit in (None, 64):
+            monkeypatch.setattr(rt, "gpu_shaped", shape == "gpu")
+            monkeypatch.setattr(rt, "loop_limit", limit)
+            windows.clear()
+            runs[shape, limit] = every_path(random_scene)
+            resumed = {name for name, walk_from in windows if walk_from > 0}
+            if limit:
+                prefix = "tile_" if shape == "gpu" else ""
+                assert {f"{prefix}vrender", "blend_backward_group" if shape == "gpu" else "blend_backward",
+                        "weight_grads", "splat_backward"} | {
+                        f"{prefix}{'select_' if not prefix else ''}{s}" for s in ("quantile", "topk", "stratified")} \
+                    <= resumed, resumed
+            else:
+                assert not resumed
+    want = runs["cpu", None]
+    for key, got in runs.items():
+        assert got.keys() == want.keys()
+        assert [k for k in want if got[k] != want[k]] == [], key
