@@ -315,7 +315,7 @@ __kernel void select_quantile(BLOCK_ARGS, WINDOW_ARGS, STATE_ARGS, K_ROWS_ARGS B
 __kernel void select_stratified(BLOCK_ARGS, const int pass, WINDOW_ARGS, STATE_ARGS, K_ROWS_ARGS BLEND_ARGS) {
     BLOCK_SETUP
     BLOCK_WINDOW
-    lanef mu, sigma, t_end;
+    lanef mu = (lanef)(0.f), sigma = (lanef)(0.f), t_end = (lanef)(1.f);   /* lanes without a ray keep these */
     if (pass != 2) {                                  /* pass 1: the transmittance statistics */
         lanef sum = (lanef)(0.f), sum_sq = (lanef)(0.f), used = (lanef)(0.f), T = (lanef)(1.f);
         lanei done = row < 0;

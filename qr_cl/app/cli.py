@@ -15,7 +15,6 @@ from ..runtime import (BufferLimitError, HostMemoryError, NoDeviceError, choose_
                        trial_run)
 from ..runtime.device import implementation, self_check_enabled
 from ..scene import SceneFormatError, load_cameras, load_layout_instance, load_scene, orbit_cameras
-from .images import save_alpha, save_depth, save_rgb
 from .training.network import CheckpointError
 from .timing import Stopwatch
 
@@ -57,6 +56,7 @@ def _cmd_devices(args: argparse.Namespace) -> int:
 
 def render_views(gaussians, cameras, out: Path, sh_degree: int | None, prefix: str = "") -> float:
     """Render RGB, depth and alpha PNGs of every camera into ``out``; returns seconds spent."""
+    from .images import save_alpha, save_depth, save_rgb   # matplotlib: not imported by the other commands
 
     out.mkdir(parents=True, exist_ok=True)
     degree = gaussians.sh_degree if sh_degree is None else min(sh_degree, gaussians.sh_degree)

@@ -27,10 +27,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from qr_cl.app.bench.parity import compare
 from qr_cl.runtime.implementations import NAMES, environment, installed
 
-W, H, CHANNELS, K = 160, 120, 64, 10
-RTOL = 1e-4
 #: Scenes of the default run; "dense" (the 300k-Gaussian room) runs in the slow suite.
 SCENES = ["random", "fox", "donut"]
 SHAPES = ["cpu", "gpu"]
@@ -38,79 +37,12 @@ SHAPES = ["cpu", "gpu"]
 
 # ---------------------------------------------------------------- the child
 
-def load(name: str, data: Path):
-    """(Gaussians, Camera at W x H) of a scene: "random" (procedural, always there), "fox",
-    "donut" (../shared/data) or "dense" (the procedural 300k-Gaussian room)."""
-    import qr_cl
-    from qr_cl.app.scenes.procedural import dense_room, procedural_scene
-    from qr_cl.scene import load_layout_instance
-    if name == "random":
-        g = procedural_scene(3000, seed=2)
-        return g, qr_cl.orbit_cameras(g.means, 1, W, H)[0]
-    if name == "fox":
-        g = qr_cl.load_ply(data / "wakufactory-fox" / "fox.ply")
-        return g, qr_cl.orbit_cameras(g.means, 1, W, H, up_axis=1)[0]
-    if name == "donut":
-        layout = data / "v3dg-donut" / "_SingleDonut.json"
-        g = qr_cl.load_ply(data / "v3dg-donut" / "donut_fused.ply").transformed(*load_layout_instance(layout))
-        return g, qr_cl.load_cameras(layout)[0].resized(W, H)
-    if name == "dense":
-        g, cam = dense_room()
-        return g, cam.resized(W, H)
-    raise ValueError(name)
-
-
-def render_all(g, cam) -> dict[str, np.ndarray]:
-    """Every public path's outputs for one scene and camera (float32 arrays by name)."""
-    import torch
-    import qr_cl
-    rng = np.random.default_rng(0)
-    n = len(g.means)
-    feats = rng.normal(size=(n, CHANNELS)).astype(np.float32)
-    weights = torch.from_numpy(rng.normal(size=(H, W, CHANNELS)).astype(np.float32))
-    geometry = (g.means, g.quats, g.scales, g.opacities)
-    out = {}
-    for sampler in ("volume", "quantile", "topk", "stratified"):
-        f = torch.from_numpy(feats).requires_grad_(True)
-        img, alpha, _ = qr_cl.rasterize(*geometry, f, cam.viewmat, cam.K, W, H, sampler=sampler, k=K)
-        (img * weights).sum().backward()
-        out.update({f"{sampler}/image": img.detach().numpy(), f"{sampler}/alpha": alpha.numpy(),
-                    f"{sampler}/dfeatures": f.grad.numpy()})
-    f = torch.from_numpy(feats).half().requires_grad_(True)                      # a float16 table
-    img, _, _ = qr_cl.rasterize(*geometry, f, cam.viewmat, cam.K, W, H, sampler="quantile", k=K)
-    (img * weights).sum().backward()
-    out.update({"half/image": img.detach().numpy(), "half/dfeatures": f.grad.float().numpy()})
-    pixels = np.stack([rng.integers(0, W, 700), rng.integers(0, H, 700)], 1)
-    f = torch.from_numpy(feats).requires_grad_(True)
-    img, _, _ = qr_cl.rasterize(*geometry, f, cam.viewmat, cam.K, W, H, sampler="quantile", k=K, pixels=pixels)
-    (img * weights[pixels[:, 1], pixels[:, 0]]).sum().backward()
-    out.update({"pixels/image": img.detach().numpy(), "pixels/dfeatures": f.grad.numpy()})
-    img, _, _ = qr_cl.rasterize(*geometry, g.sh, cam.viewmat, cam.K, W, H, sh_degree=g.sh_degree)
-    out["sh/image"] = img.numpy()
-    img, alpha, meta = qr_cl.render_volume_fused(*geometry, feats, cam.viewmat, cam.K, W, H)
-    out.update({"fused/image": img.numpy(), "fused/alpha": alpha.numpy(), "fused/depth": meta["depth"]})
-    colours = torch.from_numpy(rng.uniform(0, 1, (n, 3)).astype(np.float32))
-    for sampler in ("volume", "quantile"):
-        params = [torch.from_numpy(np.asarray(a, np.float32)).requires_grad_(True)
-                  for a in (*geometry, colours)]
-        img, _, _ = qr_cl.rasterization(*params, torch.from_numpy(cam.viewmat[None]).float(),
-                                        torch.from_numpy(cam.K[None]).float(), W, H, sampler=sampler, k=K)
-        (img[0] * weights[..., :3]).sum().backward()
-        out[f"rasterization-{sampler}/image"] = img.detach().numpy()
-        for name, p in zip(("means", "quats", "scales", "opacities", "colors"), params):
-            out[f"rasterization-{sampler}/d{name}"] = p.grad.numpy()
-    return out
-
-
 def child(out: str, scenes: list[str]) -> None:
+    from qr_cl.app.bench.parity import render_scenes
     from qr_cl.runtime import runtime
     from qr_cl.runtime.device import implementation
     print(implementation(runtime().device), flush=True)
-    results = {}
-    for name in scenes:
-        g, cam = load(name, Path(os.environ["QR_CL_DATA"]))
-        results.update({f"{name}:{k}": v for k, v in render_all(g, cam).items()})
-    np.savez(out, **results)
+    np.savez(out, **render_scenes(scenes, Path(os.environ["QR_CL_DATA"])))
 
 
 # ---------------------------------------------------------------- the parent
@@ -127,31 +59,6 @@ def run_child(implementation: str, shape: str, cache: Path, out: Path, scenes: l
 
 def scenes_here(shared: bool) -> list[str]:
     return SCENES if shared else ["random"]
-
-
-#: The share of rows (pixels, or Gaussians of a gradient) of an output that may differ: rays at a
-#: threshold by float rounding (a K sampler's boundary, the alpha cut, V-Render's stop) decide
-#: differently under another compiler (the dense room's stratified sampler on Intel's runtime: 2 of
-#: 19,200 rays; the donut's V-Render on rusticl: 6).
-FLIPPED_ROWS = 1e-3
-#: Outputs of a float16 table's gradient (rounded to float16 at the end): one float16 rounding apart
-#: where the float32 sums differ in their last bit.
-HALF_RTOL = 1e-3
-
-
-def compare(got: dict, want: dict) -> list[str]:
-    """The outputs of ``got`` off ``want``'s by more than RTOL of want's largest value (HALF_RTOL
-    for a float16 table's) in more than FLIPPED_ROWS of their rows."""
-    bad = []
-    assert sorted(got) == sorted(want)
-    for key in sorted(want):
-        scale = max(float(np.abs(want[key]).max(initial=0)), 1e-30)
-        off = np.abs(got[key] - want[key]) > (HALF_RTOL if "half/" in key else RTOL) * scale
-        rows = off.reshape(-1, off.shape[-1]).any(1) if off.ndim > 1 else off
-        if rows.sum() > int(FLIPPED_ROWS * len(rows)):
-            err = float(np.abs(got[key] - want[key]).max()) / scale
-            bad.append(f"{key}: {err:.2e} in {int(rows.sum())} of {len(rows)} rows")
-    return bad
 
 
 @pytest.fixture(scope="module")
