@@ -19,15 +19,17 @@ static inline float splat_sigma(float a, float b, float c, float dx, float dy) {
 #define CAT(a, b) CAT2(a, b)
 
 /* e^-x in float by the same float operations in scalar and vector code, on every implementation:
-   2^n p(r) with n = rint(-x log2 e) and r = -x - n ln 2 (ln 2 in two parts), p Cephes' expf
-   polynomial of e^r on |r| <= ln(2) / 2, every multiply-add an explicit fma (within 1.3 ulp of
-   exp). A library exp may round its scalar and vector versions apart (PoCL's do, in about 1 % of
-   arguments), and a ray's alphas must be the same bytes whether computed alone (tile walk) or in
-   lanes (block walk). x is clamped to [-87, 87], so 2^n is a normal float. */
+   2^n p(r) with n = -x log2 e rounded to nearest (by adding and subtracting 1.5 * 2^23 around an
+   fma: exact, where rint on vectors runs lane by lane on PoCL), r = -x - n ln 2 (ln 2 in two
+   parts), p Cephes' expf polynomial of e^r on |r| <= ln(2) / 2, every multiply-add an explicit
+   fma (within 1.3 ulp of exp). A library exp may round its scalar and vector versions apart
+   (PoCL's do, in about 1 % of arguments), and a ray's alphas must be the same bytes whether
+   computed alone (tile walk) or in lanes (block walk). x is clamped to [-87, 87], so 2^n is a
+   normal float. */
 #define DEFINE_EXP_NEG(name, F, CONVERT_INT, AS_FLOAT) \
     static inline F name(F x) { \
         const F y = -clamp(x, (F)(-87.f), (F)(87.f)); \
-        const F n = rint(y * 1.44269504088896341f); \
+        const F n = fma(y, (F)(1.44269504088896341f), (F)(12582912.f)) - 12582912.f; \
         F r = fma(n, (F)(-0.693359375f), y); \
         r = fma(n, (F)(2.12194440e-4f), r); \
         F p = (F)(1.9875691500e-4f); \

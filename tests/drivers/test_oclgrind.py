@@ -186,21 +186,22 @@ def exercise() -> None:
     rt.queue.finish()
 
 
-#: The loop limit under which walks_exercise walks in windows: the tiny scene's lists (up to 76
-#: Gaussians) then take several windows in every walk.
-WINDOWS_LIMIT = 512
+#: The loop limits under which walks_exercise walks in windows, for the block walk (CPU shapes) and
+#: the tile walk (GPU shapes), whose loop iterations per list position differ: every walk over the
+#: tiny scene's lists (up to 76 Gaussians) then takes two to five windows.
+WINDOWS_LIMITS = {False: 2048, True: 256}
 
 
 def walks_exercise(rt, geo, cam, feats, pixels) -> None:
     """Both walks of every sampler: the block walk (CPU shapes) and the tile walk (GPU shapes), in
-    one launch (the samplers exercise() leaves to one shape) and in windows (a loop limit of
-    WINDOWS_LIMIT), forward and backward, and the fused V-Render."""
+    one launch (the samplers exercise() leaves to one shape) and in windows (WINDOWS_LIMITS),
+    forward and backward, and the fused V-Render."""
     import torch
 
     import qr_cl
     gpu_shaped = rt.gpu_shaped
     runs = [(False, None, ("volume", "stratified")), (True, None, ("stratified",))]
-    runs += [(shape, WINDOWS_LIMIT, ("volume", "quantile", "topk", "stratified")) for shape in (False, True)]
+    runs += [(shape, limit, ("volume", "quantile", "topk", "stratified")) for shape, limit in WINDOWS_LIMITS.items()]
     for rt.gpu_shaped, rt.loop_limit, samplers in runs:
         for sampler in samplers:
             f = torch.from_numpy(feats).requires_grad_(True)
