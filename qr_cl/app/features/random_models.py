@@ -28,6 +28,8 @@ CLIP_ARCHITECTURES = {
     "ViT-B-32": ClipArchitecture(768, 12, 32, 224, 3072, 512, 512, 12, 77, 49408, 2048, False),
     "ViT-L-14": ClipArchitecture(1024, 24, 14, 224, 4096, 768, 768, 12, 77, 49408, 3072, False),
 }
+#: Factor on the random SAM's hypernetwork outputs: logits steep enough to be stable at +-1.
+SHARPEN = 1000.0
 SAM_ARCHITECTURES = {
     "vit_b": SamArchitecture(768, 12, 12, (2, 5, 8, 11)),
     "vit_l": SamArchitecture(1024, 24, 16, (5, 11, 17, 23)),
@@ -59,13 +61,13 @@ def random_clip(arch: ClipArchitecture, seed: int = 0) -> Clip:
 
 def random_sam(arch: SamArchitecture, seed: int = 0, confident: bool = True) -> Sam:
     """A SAM of ``arch`` with seeded random weights; ``confident`` lifts the IoU head's output
-    bias to 1 and scales the hypernetworks' last layers 20x (sharp, stable mask logits)."""
+    bias to 1 and scales the hypernetworks' last layers by :data:`SHARPEN` (sharp, stable mask logits)."""
     sam = randomise(Sam(arch), seed).eval()
     if confident:
         with torch.no_grad():
             sam.mask_decoder.iou_prediction_head.layers[-1].bias.fill_(1.0)
             for mlp in sam.mask_decoder.output_hypernetworks_mlps:
-                mlp.layers[-1].weight.mul_(20.0)
+                mlp.layers[-1].weight.mul_(SHARPEN)
     return sam
 
 
