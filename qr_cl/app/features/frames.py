@@ -46,7 +46,7 @@ def frame_features(sam: Sam, clip: Clip, image: np.ndarray, settings: MaskSettin
                    batch: int = 32) -> FrameFeatures:
     """The features of ``image`` [H, W, 3] uint8 RGB (module docstring); ``batch`` crops go through
     CLIP at a time."""
-    pixels = torch.from_numpy(image).to(sam.device)
+    pixels = torch.from_numpy(image.copy()).to(sam.device)
     maps, rows, counts = [], [], []
     offset = 0
     for level in level_masks(sam, image, settings):
