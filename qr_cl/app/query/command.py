@@ -25,6 +25,8 @@ from ..process import cap_kernel_threads
 from .pictures import heat_colours, overlay, render_rgb, render_values, write_score_ply, write_selection_ply
 from .relevancy import METHODS, score, score_range
 from .scene import QueryScene, load_query_scene, scene_features
+from ..features.classes import recorded_encoder
+from ..features.weights import file_sha256
 from .text import QueryError, TextEncoder, TextLookup, normalise, open_clip_encoder
 
 #: Views rendered by default: this many of the scene's cameras, evenly spaced (all when fewer).
@@ -127,6 +129,16 @@ def write_heatmaps(scene: QueryScene, scores: dict[str, np.ndarray], lo_hi: dict
     return files
 
 
+def check_text_encoder(classes: Path, weights: str) -> None:
+    """QueryError when ``classes`` (a classes.json written by ``qr-cl features``) records another
+    text encoder than the weights file ``weights``: its text features and the encoder's would be
+    in different spaces."""
+    recorded = recorded_encoder(classes)
+    if recorded and Path(weights).is_file() and recorded.get("sha256") != file_sha256(weights):
+        raise QueryError(f"{weights}: not the CLIP that made {classes} ({recorded.get('model')}, "
+                         f"{recorded.get('weights')}); its text features would not match")
+
+
 def run(args: argparse.Namespace, encoder: TextEncoder | None = None) -> int:
     """Score, render and write every query (module docstring); ``encoder`` replaces the one
     ``--clip-weights`` loads (tests inject a stub). Bad queries: one line, exit status 2."""
@@ -142,6 +154,8 @@ def _run(args: argparse.Namespace, encoder: TextEncoder | None) -> int:
         raise QueryError(f"-k {args.k}: K is at least one Gaussian per ray")
     cap_kernel_threads()
     scene = load_query_scene(args.scene, args.level)
+    if args.clip_weights:
+        check_text_encoder(Path(args.scene) / "classes.json", args.clip_weights)
     if encoder is None and args.clip_weights:
         encoder = open_clip_encoder(args.clip_weights, args.clip_model)
     cameras = query_cameras(scene, args.views, args.orbit, args.width, args.up_axis)

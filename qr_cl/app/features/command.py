@@ -1,0 +1,137 @@
+"""``qr-cl features``: LangSplat's language features for every frame of a scene's cameras.json.
+
+Reads ``DIR/<img_name>`` per camera, makes SAM's automatic masks at LangSplat's four levels,
+encodes each mask's crop with CLIP's image encoder and writes ``SCENE/language_features/<img>_s.npy``
+and ``<img>_f.npy`` (:mod:`.frames`), frame by frame and atomically, so an interrupted run goes on
+where it stopped (:mod:`.store`). ``--classes`` also writes ``SCENE/classes.json`` with the same
+CLIP's text features (:mod:`.classes`). Models are built in plain torch from the weights files
+(:mod:`.clip_model`, :mod:`.sam_model`); nothing is downloaded.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from dataclasses import asdict
+from pathlib import Path
+
+from ..process import process_cores
+from .errors import FeaturesError
+
+#: What the command needs beyond the core install (the ``features`` extra).
+EXTRA_MODULES = ("scipy", "regex")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``qr-cl features``."""
+    parser.add_argument("scene", help="scene folder with cameras.json (language_features/ is written there)")
+    parser.add_argument("--images", required=True, help="folder of the photos: <img_name> of each camera, any "
+                                                        "common image extension")
+    parser.add_argument("--clip-weights", required=True, help="OpenCLIP (.bin/.safetensors) or OpenAI (.pt) CLIP "
+                                                              "ViT weights file, e.g. ViT-B-16 laion2b_s34b_b88k")
+    parser.add_argument("--sam-weights", required=True, help="SAM checkpoint sam_vit_{b,l,h}_*.pth")
+    parser.add_argument("--clip-model", help="OpenCLIP name of the CLIP weights (e.g. ViT-B-16, ViT-B-32-quickgelu); "
+                                             "checked against the file, which gives it by default")
+    parser.add_argument("--clip-vocab", help="CLIP's bpe_simple_vocab_16e6.txt.gz for --classes (default: beside "
+                                             "the CLIP weights or from an installed open_clip)")
+    parser.add_argument("--classes", help="class names, comma-separated or a file: writes SCENE/classes.json")
+    parser.add_argument("--device", default="cpu", help="torch device (default cpu; e.g. cuda, cuda:1, mps, xpu)")
+    parser.add_argument("--threads", type=int, help="torch CPU threads (default: this process's cores)")
+    parser.add_argument("--batch", type=int, default=32, help="mask crops per CLIP batch (default 32)")
+    parser.add_argument("--points-per-side", type=int, default=32, help="SAM point grid per side (LangSplat: 32)")
+    parser.add_argument("--crop-layers", type=int, default=1, help="SAM crop layers (LangSplat: 1, i.e. 1+4 crops)")
+    parser.add_argument("--overwrite", action="store_true", help="redo frames already written")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Write the features (module docstring); bad input: one line, exit status 2."""
+    try:
+        return _run(args)
+    except FeaturesError as exc:
+        print(f"qr-cl: error: {exc}", file=sys.stderr)
+        return 2
+
+
+def _device(name: str):
+    import torch
+
+    try:
+        device = torch.device(name)
+        torch.empty(1, device=device)
+    except (RuntimeError, AssertionError) as exc:
+        reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise FeaturesError(f"--device {name}: not usable here ({reason})") from None
+    return device
+
+
+def _check_extra() -> None:
+    import importlib.util
+
+    absent = [m for m in EXTRA_MODULES if importlib.util.find_spec(m) is None]
+    if absent:
+        raise FeaturesError(f"qr-cl features needs {', '.join(absent)}: pip install -e \".[features]\"")
+
+
+def _classes(args, clip, scene: Path) -> None:
+    from .classes import class_features, encoder_record, read_class_names, write_classes
+    from .tokenizer import ClipTokenizer, find_vocabulary
+
+    names = read_class_names(args.classes)
+    try:
+        tokenizer, missing = ClipTokenizer(find_vocabulary(args.clip_vocab, args.clip_weights)), None
+    except FeaturesError as exc:
+        if args.clip_vocab is not None:
+            raise
+        tokenizer, missing = None, exc
+    rows, sources = class_features(clip, tokenizer, names, missing)
+    write_classes(scene / "classes.json", names, rows, sources, encoder_record(clip, Path(args.clip_weights)))
+    print(f"{scene / 'classes.json'}: {len(names)} classes ({clip.arch.name} text features)")
+
+
+def _run(args: argparse.Namespace) -> int:
+    _check_extra()
+    import torch
+    from tqdm import tqdm
+
+    from ...scene import load_cameras
+    from .clip_model import load_clip
+    from .frames import frame_features
+    from .masks import MaskSettings
+    from .photos import find_images, read_image
+    from .sam_model import load_sam
+    from .store import check_record, write_frame
+    from .weights import file_sha256
+
+    for option, value in (("--batch", args.batch), ("--points-per-side", args.points_per_side)):
+        if value < 1:
+            raise FeaturesError(f"{option} {value}: at least 1")
+    if args.crop_layers < 0:
+        raise FeaturesError(f"--crop-layers {args.crop_layers}: at least 0")
+    scene = Path(args.scene)
+    cameras = load_cameras(scene / "cameras.json")
+    images = find_images(args.images, cameras)
+    device = _device(args.device)
+    torch.set_num_threads(args.threads or process_cores())
+    clip = load_clip(args.clip_weights, args.clip_model).to(device)
+    if args.classes:
+        _classes(args, clip, scene)
+    sam = load_sam(args.sam_weights).to(device)
+    settings = MaskSettings(points_per_side=args.points_per_side, crop_layers=args.crop_layers)
+    record = {"clip": {"model": clip.arch.name, "weights": Path(args.clip_weights).name,
+                       "sha256": file_sha256(args.clip_weights)},
+              "sam": {"model": sam.arch.name, "weights": Path(args.sam_weights).name,
+                      "sha256": file_sha256(args.sam_weights)},
+              "masks": asdict(settings)}
+    folder = scene / "language_features"
+    stems = [Path(c.name).stem for c in cameras]
+    todo = set(check_record(folder, record, stems, args.overwrite))
+    if len(todo) < len(stems):
+        print(f"{folder}: {len(stems) - len(todo)} of {len(stems)} frames already written; going on")
+    work = [(cam, path, stem) for cam, path, stem in zip(cameras, images, stems) if stem in todo]
+    masks = 0
+    for cam, path, stem in tqdm(work, desc="features", unit="frame"):
+        result = frame_features(sam, clip, read_image(path, cam), settings, args.batch)
+        write_frame(folder, stem, result.ids, result.features)
+        masks += sum(result.counts)
+    print(f"{folder}: {len(work)} frames written ({masks} masks; SAM {sam.arch.name}, CLIP {clip.arch.name}, "
+          f"{device})")
+    return 0
