@@ -24,6 +24,7 @@ over rounds and calls of each, the speed-up, and each build's fused V-Render ove
 from __future__ import annotations
 
 import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
@@ -80,31 +81,38 @@ def measure_install(scenes_file: Path, calls: int) -> dict:
                     "train": train}
         results[name] = {}
         for path in PATHS:
-            call, kept = calls_of[path], []
+            call, kept, cpu = calls_of[path], [], []
             kept.append(call())                  # warm-up; results stay alive as in a render loop
 
-            def keep(call=call, kept=kept) -> None:
+            def keep(call=call, kept=kept, cpu=cpu) -> None:
+                start = time.process_time()
                 kept[0] = call()
+                cpu.append(time.process_time() - start)
             times, faults = timing.timed_calls(keep, calls)
-            results[name][path] = {"min_s": min(times), "faults": min(faults)}
+            results[name][path] = {"min_s": min(times), "cpu_s": min(cpu), "faults": min(faults)}
     return results
 
 
 def table(base: list[dict], this: list[dict], base_name: str) -> str:
-    """Markdown: minima over the runs of both installs, speed-ups and fused / Q-Render ratios."""
-    lines = [f"base = {base_name}; ms are minima over {len(this)} runs of each install",
-             "", "| scene | path | base ms | this ms | base / this |", "| --- | --- | ---: | ---: | ---: |"]
+    """Markdown: minima over the runs of both installs (wall and CPU time: the process's, PoCL's
+    threads included, which other processes on the machine inflate less than the wall time),
+    speed-ups and fused / Q-Render ratios."""
+    lines = [f"base = {base_name}; ms are minima over {len(this)} runs of each install", "",
+             "| scene | path | base ms | this ms | base / this | base CPU ms | this CPU ms | base / this (CPU) |",
+             "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |"]
     best = {}
     for label, runs in (("base", base), ("this", this)):
         for scene in runs[0]:
             for path in PATHS:
                 best[label, scene, path] = min(r[scene][path]["min_s"] for r in runs) * 1e3
+                best[label, scene, path, "cpu"] = min(r[scene][path].get("cpu_s", float("nan")) for r in runs) * 1e3
                 best[label, scene, "faults"] = min(r[scene]["q40"]["faults"] for r in runs)
     scenes = list(this[0])
     for scene in scenes:
         for path in PATHS:
             b, t = best["base", scene, path], best["this", scene, path]
-            lines.append(f"| {scene} | {path} | {b:.1f} | {t:.1f} | {b / t:.1f}x |")
+            bc, tc = best["base", scene, path, "cpu"], best["this", scene, path, "cpu"]
+            lines.append(f"| {scene} | {path} | {b:.1f} | {t:.1f} | {b / t:.2f}x | {bc:.1f} | {tc:.1f} | {bc / tc:.2f}x |")
     lines += ["", "| scene | install | fused / q40 | fused / q10 | page faults per warm q40 |",
               "| --- | --- | ---: | ---: | ---: |"]
     for scene in scenes:
