@@ -203,6 +203,7 @@ def walks_exercise(rt, geo, cam, feats, pixels) -> None:
     runs = [(False, None, ("volume", "stratified")), (True, None, ("stratified",))]
     runs += [(shape, limit, ("volume", "quantile", "topk", "stratified")) for shape, limit in WINDOWS_LIMITS.items()]
     for rt.gpu_shaped, rt.loop_limit, samplers in runs:
+        start = time.perf_counter()
         for sampler in samplers:
             f = torch.from_numpy(feats).requires_grad_(True)
             img, _, _ = qr_cl.rasterize(*geo, f, cam.viewmat, cam.K, W, H, sampler=sampler, k=4,
@@ -212,7 +213,8 @@ def walks_exercise(rt, geo, cam, feats, pixels) -> None:
         if rt.loop_limit:
             qr_cl.render_volume_fused(*geo, feats, cam.viewmat, cam.K, W, H)
         print(f"{'tile' if rt.gpu_shaped else 'block'} walks, loop limit {rt.loop_limit}: {', '.join(samplers)}"
-              f"{' and the fused V-Render' if rt.loop_limit else ''} forward+backward: ok", flush=True)
+              f"{' and the fused V-Render' if rt.loop_limit else ''} forward+backward: ok "
+              f"({time.perf_counter() - start:.0f} s)", flush=True)
     rt.gpu_shaped, rt.loop_limit = gpu_shaped, None
 
 

@@ -92,11 +92,27 @@ def check_equal_first_and_cached(name: str, shape: str, scenes: list[str], refer
         assert not bad, f"{name}, {shape} shapes, {run_name} run differs from PoCL: {bad}"
 
 
-@pytest.mark.parametrize("name", NAMES)
 @pytest.mark.parametrize("shape", SHAPES)
-def test_implementation_equals_pocl_first_and_cached(name, shape, reference, tmp_path):
-    needs(name)
-    check_equal_first_and_cached(name, shape, scenes_here(reference.shared), reference, tmp_path)
+def test_intel_equals_pocl_first_and_cached(shape, reference, tmp_path):
+    needs("intel")
+    check_equal_first_and_cached("intel", shape, scenes_here(reference.shared), reference, tmp_path)
+
+
+@pytest.mark.parametrize("shape", SHAPES)
+def test_rusticl_equals_pocl_first_and_cached(shape, reference, tmp_path):
+    """On the procedural scene: llvmpipe's compiler makes a run of the three scenes take minutes
+    (the real scenes run in the slow suite)."""
+    needs("rusticl")
+    check_equal_first_and_cached("rusticl", shape, ["random"], reference, tmp_path)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("shape", SHAPES)
+def test_rusticl_equals_pocl_on_the_real_scenes(shape, reference, tmp_path):
+    needs("rusticl")
+    if not reference.shared:
+        pytest.skip("the real scenes are not here")
+    check_equal_first_and_cached("rusticl", shape, ["fox", "donut"], reference, tmp_path)
 
 
 @pytest.mark.slow
