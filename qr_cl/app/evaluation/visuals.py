@@ -19,11 +19,14 @@ from ...runtime import SH_C0
 from ...scene import Camera, Gaussians
 from ..images import plt
 from ..scenes.folders import ClassTable, SceneData, unit_rows
-from .metrics import NYU40_NAMES, SUBSETS
+from .metrics import NYU40_NAMES, SUBSETS, UNLABELLED
 from .scoring import predict
 
 #: The smallest panel of a picture, pixels (width, height).
 PANEL_SIZE = (320, 240)
+
+#: The colour of Gaussians predicted as no class (no feature).
+UNLABELLED_RGB = np.full(3, 0.5, np.float32)
 
 
 def _palette(ids) -> dict[int, np.ndarray]:
@@ -121,10 +124,11 @@ def write_visuals(scene: SceneData, features: np.ndarray, gt: np.ndarray, out: P
     text = scene.classes.text_features[scene.classes.names.index(query)]
     pred = predict(features, table)
     palette = _palette(table.ids)
-    pred_rgb = np.stack([palette[int(c)] for c in pred])
+    pred_rgb = np.stack([palette.get(int(c), UNLABELLED_RGB) for c in pred])
     gt_rgb = np.stack([palette.get(int(c), np.zeros(3, np.float32)) for c in gt])
     labelled = np.isin(gt, table.ids)
     legend = [(name, palette[int(c)]) for c, name in zip(table.ids, table.names) if (pred == c).any() or (gt == c).any()]
+    legend += [("no feature", UNLABELLED_RGB)] if (pred == UNLABELLED).any() else []
     g = scene.gaussians
     files = []
     for i, cam in enumerate(cameras):
