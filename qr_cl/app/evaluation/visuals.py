@@ -1,6 +1,7 @@
 """Pictures of a segmentation: per camera one figure of RGB | PCA of the rendered features |
 predicted classes | ground truth | relevancy of one text query, with titles and a legend naming
-the classes predicted or labelled in the scene; a coloured and labelled PLY of the Gaussians; the colour legend as markdown.
+the classes predicted or labelled in the scene; a coloured and labelled PLY of the Gaussians; the colour legend as markdown;
+and figures of several models' predictions side by side (:func:`write_comparison`).
 
 The relevancy panel is the cosine similarity between the Q-Render (K=40) feature image and the
 query's text feature (from the scene's classes.json), shown with the turbo colour map stretched
@@ -152,3 +153,30 @@ def write_visuals(scene: SceneData, features: np.ndarray, gt: np.ndarray, out: P
         f"| {NYU40_NAMES.get(int(c), c)} | #{''.join(f'{int(round(x * 255)):02x}' for x in palette[int(c)])} |\n"
         for c in table.ids))
     return files + [ply, legend_md]
+
+
+def write_comparison(scene: SceneData, models: dict[str, np.ndarray], gt: np.ndarray, out: Path,
+                     cameras: list[Camera], subset: int = 19) -> list[Path]:
+    """Per camera one figure of the predicted classes of several models side by side: RGB | each
+    model's prediction (``models``: title -> per-Gaussian features [N,C]; grey: Gaussians without a
+    feature) | ground truth (labelled Gaussians only), with one legend. Returns the PNGs written
+    (``out``/<scene>_<camera>_compared.png)."""
+    out.mkdir(parents=True, exist_ok=True)
+    table = scene.classes.subset(SUBSETS[subset])
+    palette = _palette(table.ids)
+    preds = {name: predict(features, table) for name, features in models.items()}
+    shown = np.concatenate([*preds.values(), gt])
+    legend = [(name, palette[int(c)]) for c, name in zip(table.ids, table.names) if (shown == c).any()]
+    legend += [("no feature", UNLABELLED_RGB)] if (shown == UNLABELLED).any() else []
+    gt_rgb = np.stack([palette.get(int(c), np.zeros(3, np.float32)) for c in gt])
+    g = scene.gaussians
+    files = []
+    for i, cam in enumerate(cameras):
+        panels = [("RGB", _render(scene, np.maximum(g.sh[:, 0] * SH_C0 + 0.5, 0), cam, "volume"))]
+        panels += [(name, _render(scene, np.stack([palette.get(int(c), UNLABELLED_RGB) for c in pred]), cam, "volume"))
+                   for name, pred in preds.items()]
+        panels.append(("ground truth", _render(scene, gt_rgb, cam, "volume", np.isin(gt, table.ids))))
+        path = out / f"{scene.name}_{cam.name or f'camera{i}'}_compared.png"
+        _figure(path, panels, legend)
+        files.append(path)
+    return files

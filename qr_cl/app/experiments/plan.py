@@ -12,10 +12,10 @@ LABELS = {"volume": "V-Render", "quantile": "Q-Render", "topk": "top-K", "strati
 @dataclass
 class Plan:
     """The budget of one reproduction: rooms (``room``: SyntheticConfig overrides of the "3dgs"
-    style), training (same ``steps``, ``views`` and ``rays`` for every renderer, each run repeated
-    with ``seeds`` seeds), the K values and
-    noise scales, the sizes of the timing, profile and RGB measurements (pixels), and the flat
-    room compared with them (``flat_room``: overrides of the default flat room, the demo's)."""
+    style), training (same ``steps``, ``views`` and ``rays`` for every renderer and for GS-Net
+    overfit to the held-out room, each run repeated with ``seeds`` seeds), the K values and noise
+    scales, the sizes of the timing, profile and RGB measurements (pixels), the flat room compared
+    with them (``flat_room``: overrides of the default flat room, the demo's) and Dr.Splat's K."""
 
     train_rooms: int
     steps: int
@@ -36,6 +36,7 @@ class Plan:
     stats_views: int = 4
     dense_gaussians: int = 300_000
     flat_room: dict = field(default_factory=dict)
+    drsplat_k: int = 40
 
 
 PLANS = {

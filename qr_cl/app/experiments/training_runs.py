@@ -1,5 +1,6 @@
 """Study: GS-Net trained through each renderer of the plan with the same budget, and the per-scene
-baseline fitted on the held-out room itself, scored on the held-out room (mIoU/mAcc)."""
+methods of Table 2 on the held-out room itself (GS-Net overfit to it, Dr.Splat's registration, free
+features through the renderer), scored on the held-out room (mIoU/mAcc)."""
 from __future__ import annotations
 
 from dataclasses import asdict
@@ -11,7 +12,8 @@ from ..evaluation.metrics import SUBSETS
 from ..evaluation.scoring import evaluate_features
 from ..scenes.folders import SceneData, load_scene_folder
 from ..timing import Stopwatch
-from ..training.baseline import fit_free_features
+from ..registration.register import register, scene_views
+from ..training.free_features import fit_free_features
 from ..training.config import TrainConfig
 from ..training.network import network_features
 from ..training.trainer import train
@@ -53,13 +55,45 @@ def train_and_evaluate(plan: Plan, run: TrainingRun, train_paths: list[Path], he
             **held_out_scores(held, network_features(state, scene), gt, reached)}
 
 
-def baseline_scores(plan: Plan, held: SceneData, gt: np.ndarray, reached: np.ndarray, out: Path, seed: int) -> dict:
-    """The per-scene baseline (:func:`qr_cl.app.training.baseline.fit_free_features`: free features fitted
-    on the held-out room itself) with GS-Net's budget through Q-Render K=40 and training seed
-    ``seed``, scored like the runs."""
-    cfg = TrainConfig(scenes=[str(held.root)], out=str(out / "runs" / f"baseline-seed{seed}"), steps=plan.steps,
+#: The label of the free-feature fit in tables.
+FREE_FEATURES = f"free features through Q-Render K={NOISE_K} (no 3D term)"
+
+
+def free_feature_scores(plan: Plan, held: SceneData, gt: np.ndarray, reached: np.ndarray, out: Path,
+                        seed: int) -> tuple[dict, np.ndarray]:
+    """Free features (:func:`qr_cl.app.training.free_features.fit_free_features`) fitted on the
+    held-out room itself with GS-Net's budget through Q-Render K=40 and training seed ``seed``:
+    (their scores, scored like the runs; the features [N,C])."""
+    cfg = TrainConfig(scenes=[str(held.root)], out=str(out / "runs" / f"free-features-seed{seed}"), steps=plan.steps,
                       views=plan.views, rays=plan.rays, sampler="quantile", k=NOISE_K, seed=seed)
     watch = Stopwatch()
     features = fit_free_features(held, cfg)
-    return {"label": f"per-scene baseline, Q-Render K={NOISE_K}", "steps": plan.steps, "train_seed": seed,
-            "train_s": watch.seconds, **held_out_scores(held, features, gt, reached)}
+    return ({"label": FREE_FEATURES, "steps": plan.steps, "train_seed": seed, "train_s": watch.seconds,
+             **held_out_scores(held, features, gt, reached)}, features)
+
+
+def overfit_scores(plan: Plan, held: SceneData, gt: np.ndarray, reached: np.ndarray, out: Path, seed: int) -> dict:
+    """GS-Net overfit to the held-out room (the paper's overfit row): the same network and budget
+    through Q-Render K=40, trained on the held-out room alone with seed ``seed``, scored like the
+    runs."""
+    name = f"overfit-quantile{NOISE_K}-seed{seed}"
+    cfg = TrainConfig(scenes=[str(held.root)], out=str(out / "runs" / name), steps=plan.steps, views=plan.views,
+                      rays=plan.rays, sampler="quantile", k=NOISE_K, seed=seed, checkpoint_every=plan.steps)
+    watch = Stopwatch()
+    state = train(cfg).state()
+    return {"label": f"GS-Net overfit, Q-Render K={NOISE_K}", "steps": plan.steps, "train_seed": seed,
+            "train_s": watch.seconds, "final_loss": state["history"][-1],
+            "checkpoint": str(Path(cfg.out) / "checkpoint.pt"), **held_out_scores(held, network_features(state, held),
+                                                                                  gt, reached)}
+
+
+def registration_scores(plan: Plan, held: SceneData, gt: np.ndarray, reached: np.ndarray) -> tuple[dict, np.ndarray]:
+    """Dr.Splat's registration (:func:`qr_cl.app.registration.register.register`, K =
+    ``plan.drsplat_k``, the level GS-Net trains on) of the held-out room, scored like the runs:
+    (the scores with the registration's summary and the labelled Gaussians it leaves without a
+    feature, the features [N,C])."""
+    result = register(held.gaussians, scene_views([held]), plan.drsplat_k, total=len(held.frames))
+    labelled = gt >= 0
+    return ({"label": f"Dr.Splat registration, top-{plan.drsplat_k} contributors", **result.summary(),
+             "labelled_unreached": int((labelled & ~result.reached).sum()), "labelled": int(labelled.sum()),
+             **held_out_scores(held, result.features, gt, reached)}, result.features)

@@ -1,6 +1,6 @@
 """The rays a training step renders: pixels drawn inside masks, their selections (gathered from
 whole-view selections kept in a :class:`~qr_cl.render.SelectionCache`) re-indexed into a compact
-table of the Gaussians they use, and their loss (shared by GS-Net training and the baseline).
+table of the Gaussians they use, and their loss (shared by GS-Net training and the free-feature fit).
 
 A step touches only what its rays select: the Gaussians are frozen, so the selections of a step's
 rays (geometry only) are made first (:func:`step_rays`), the features are computed for the union
