@@ -48,6 +48,7 @@ from ..runtime import runtime
 from .evaluation.labels import ground_truth, reached_gaussians
 from .experiments.agreement import feature_agreement
 from .experiments.claims import paper_claims
+from .experiments.depth_rooms import depth_room_study
 from .experiments.plan import NOISE_K, PLANS, Plan, plan_runs
 from .experiments.ray_depth import ray_depth_study
 from .experiments.render_times import render_times
@@ -100,6 +101,8 @@ def run_reproduction(plan: Plan, mode: str, out: Path, cache: Path | None, data:
                   "GS-Net overfit": network_features(Path(overfit[0]["checkpoint"]), held),
                   "Dr.Splat registration": registered, "free features": first_free}
         segmentation = segmentation_study(held, models, gt, out, f"GS-Net {main['label']}, seed {seed}")
+        depth_rooms = depth_room_study(plan, seed, cache, features, out)
+        release_freed_memory()
         volume = next(r for r in rows if r["sampler"] == "volume")
         timed_features = network_features(Path(volume["checkpoint"]), held)      # timed renders: V-Render's GS-Net
     timed = [r for r in runs if not r.noise and not r.seed]
@@ -115,7 +118,7 @@ def run_reproduction(plan: Plan, mode: str, out: Path, cache: Path | None, data:
                "render_ms": render_times(plan, held, timed_features, timed),
                "agreement": feature_agreement(plan, held, timed_features, timed),
                "profiles": transmittance_study(plan, held, out, seed),
-               "ray_depths": ray_depth_study(plan, held, data, seed),
+               "ray_depths": ray_depth_study(plan, held, data, seed), "depth_rooms": depth_rooms,
                "rgb": rgb_study(plan, held, data, out)}
     results["claims"] = table2_claims(results) + paper_claims(results)
     results["wall_s"] = watch.seconds

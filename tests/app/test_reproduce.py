@@ -338,7 +338,10 @@ def test_smoke_run_writes_the_report(tmp_path, data_dir, capsys):
     assert {"miou19", "miou19_reached"} <= set(results["free_features"][0]) and "miou19_reached" in results["runs"][0]
     assert {"miou19", "macc10"} <= set(results["overfit"][0]) and len(results["drsplat"]) == 1
     assert 0 < results["drsplat"][0]["reached"] <= results["drsplat"][0]["gaussians"]
-    assert len(results["claims"]) == 8 and all("resolution" in c for c in results["claims"])
+    assert len(results["claims"]) == 9 and all("resolution" in c for c in results["claims"])
+    depth = results["depth_rooms"]
+    assert len(depth["runs"]) == 2 * seeds and {r["sampler"] for r in depth["runs"]} == {"topk", "quantile"}
+    assert depth["ray_depth"]["k"] == PLANS["smoke"].depth_k and (out / "runs" / "depth-rooms-topk5-seed0").is_dir()
     assert results["ray_depths"][0]["kind"] == "synthetic 3dgs room"
     assert set(results["segmentation"]["models"]) == {"GS-Net generalised", "GS-Net overfit", "Dr.Splat registration",
                                                      "free features"}

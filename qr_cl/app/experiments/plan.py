@@ -15,7 +15,9 @@ class Plan:
     style), training (same ``steps``, ``views`` and ``rays`` for every renderer and for GS-Net
     overfit to the held-out room, each run repeated with ``seeds`` seeds), the K values and noise
     scales, the sizes of the timing, profile and RGB measurements (pixels), the flat room compared
-    with them (``flat_room``: overrides of the default flat room, the demo's) and Dr.Splat's K."""
+    with them (``flat_room``: overrides of the default flat room, the demo's), Dr.Splat's K, and
+    the rooms with the depth structure where top-K fails and its K there (``depth_room``:
+    SyntheticConfig overrides, empty for none; :mod:`qr_cl.app.experiments.depth_rooms`)."""
 
     train_rooms: int
     steps: int
@@ -37,11 +39,18 @@ class Plan:
     dense_gaussians: int = 300_000
     flat_room: dict = field(default_factory=dict)
     drsplat_k: int = 40
+    depth_room: dict = field(default_factory=dict)
+    depth_k: int = 5
 
+
+#: SyntheticConfig overrides of rooms whose rays have the depth structure where top-K fails: each
+#: surface a 5 cm shell of 8 faint layers (Beta(1, 3) opacities), so a ray's weight decays through it.
+DEPTH_ROOM = {"layers": 8.0, "thickness": 0.05, "opacity_beta": (1.0, 3.0)}
 
 PLANS = {
     "full": Plan(train_rooms=4, steps=300, ks=(5, 10, 20, 40, 50), stratified_ks=(10, 40),
-                 noise=(0.0, 0.25, 0.5, 1.0, 2.0, 4.0), room={"n_gaussians": 60_000}),
+                 noise=(0.0, 0.25, 0.5, 1.0, 2.0, 4.0), room={"n_gaussians": 60_000},
+                 depth_room={"n_gaussians": 60_000, **DEPTH_ROOM}),
     "quick": Plan(train_rooms=2, steps=150, ks=(5, 10, 40), stratified_ks=(40,), noise=(0.0, 0.5, 2.0),
                   room={"n_gaussians": 60_000}, timing_views=1, timing_size=(320, 240), timing_rounds=2,
                   rgb_views=2, rgb_size=(320, 240), stats_views=2),
@@ -50,7 +59,10 @@ PLANS = {
                         "width": 80, "height": 60, "dim": 32, "points_per_gaussian": 8},
                   seeds=2, views=2, rays=256, timing_views=1, timing_size=(64, 48), timing_rounds=1, rgb_ks=(10,),
                   rgb_views=1, rgb_size=(64, 48), stats_views=1, dense_gaussians=5000,
-                  flat_room={"n_gaussians": 3000, "n_views": 1, "width": 64, "height": 48, "dim": 32}),
+                  flat_room={"n_gaussians": 3000, "n_views": 1, "width": 64, "height": 48, "dim": 32},
+                  depth_room={"n_gaussians": 5000, "n_objects": 3, "n_wall_objects": 1, "n_views": 4, "width": 80,
+                              "height": 60, "dim": 32, "points_per_gaussian": 8, "layers": 4.0, "thickness": 0.05,
+                              "opacity_beta": (1.0, 2.0)}),
 }
 
 

@@ -28,8 +28,14 @@ from ...render import rasterize_plan
 from ...scene import Camera, Gaussians
 from ...stages import select
 from ..scenes.folders import SceneData
+from ..scenes.views import dense_view
+from .claims import Stat
 from .plan import Plan
 from .scene_statistics import real_captures
+
+#: The kinds of scene the study compares.
+ROOM, REAL, DENSE = "synthetic 3dgs room", "real capture", "dense indoor target (procedural)"
+DEPTH_ROOM = "synthetic room, thick semi-transparent shells"
 
 DEPTH_RAYS = 2048                     # hit rays sampled per scene (over its cameras)
 SPREAD_RAY = 0.05                     # a ray's relative depth spread above which its weight is "spread"
@@ -134,13 +140,15 @@ def ray_depth_statistics(name: str, kind: str, gaussians: Gaussians, cameras: li
 
 
 def ray_depth_study(plan: Plan, held: SceneData, data, seed: int, k: int = 5) -> list[dict]:
-    """:func:`ray_depth_statistics` at ``k`` on the held-out room's first views and on the real
-    captures of ``data`` (orbit views at the plan's RGB size; none when absent)."""
+    """:func:`ray_depth_statistics` at ``k`` on the held-out room's first views, on the real
+    captures of ``data`` (orbit views at the plan's RGB size; none when absent) and on the dense
+    procedural room (many faint layers per surface: weights decaying through depth)."""
     rng = np.random.default_rng(seed)
-    scenes = [(held.name, "synthetic 3dgs room", held.gaussians, [f.camera for f in held.frames[:plan.stats_views]],
+    scenes = [(held.name, ROOM, held.gaussians, [f.camera for f in held.frames[:plan.stats_views]],
                held.gaussian_labels)]
-    scenes += [(name, "real capture", g, cams, None) for name, g, cams in real_captures(data, plan.stats_views,
-                                                                                     plan.rgb_size)]
+    scenes += [(name, REAL, g, cams, None) for name, g, cams in real_captures(data, plan.stats_views, plan.rgb_size)]
+    dense = dense_view(plan.dense_gaussians, *plan.rgb_size)
+    scenes.append((dense.name, DENSE, dense.gaussians, [dense.camera], None))
     return [ray_depth_statistics(name, kind, g, cams, k, rng, labels)
             for name, kind, g, cams, labels in tqdm(scenes, desc="ray depths", unit="scene")]
 
@@ -149,16 +157,19 @@ def depth_judgement(rows: list[dict]) -> str:
     """What the measures say about the rooms against the real captures (the rooms' rows have
     kind "synthetic 3dgs room"): whether their weight spreads over depth at all as the captures'
     do, and whether top-K's picks represent a ray's weight worse than Q-Render's there."""
-    rooms = [r for r in rows if r["kind"] != "real capture"]
-    real = [r for r in rows if r["kind"] == "real capture"]
+    rooms = [r for r in rows if r["kind"] == ROOM]
+    real = [r for r in rows if r["kind"] == REAL]
     if not rooms:
         return ""
     room = rooms[0]
+
+    def front_loaded(r: dict) -> bool:
+        """Top-K's picks leave more of the ray unseen and spread its weight worse than Q-Render's."""
+        return r["topk_gap"] > r["quantile_gap"] and r["topk_behind"] > r["quantile_behind"] + 0.02
     text = [f"On the room, top-K K={room['k']} leaves {room['topk_behind']:.0%} of a ray's weight behind its deepest pick "
             f"(Q-Render: {room['quantile_behind']:.0%}) and spreads the weight along the ray with a CDF gap of "
             f"{room['topk_gap']:.3f} (Q-Render: {room['quantile_gap']:.3f}); its picks lean to another class than the "
             f"ray's weight on {room['topk_mismatch']:.1%} of the rays (Q-Render: {room['quantile_mismatch']:.1%})."]
-    worse = room["topk_gap"] > room["quantile_gap"] and room["topk_behind"] > room["quantile_behind"] + 0.02
     if real:
         spread = max(r["spread_median"] for r in real)
         text.append(f"The room's weight spreads over {room['spread_median']:.1%} of the depth (median ray) against "
@@ -167,15 +178,20 @@ def depth_judgement(rows: list[dict]) -> str:
                     " weight spread in depth as these captures have it.")
     text.append("Top-K fails in the paper where a ray's K largest weights all lie in front of weight it never sees "
                 "(its unseen share and CDF gap above Q-Render's): " +
-                ("the room has that structure." if worse else
+                ("the room has that structure." if front_loaded(room) else
                  "the room does not have that structure: its K largest weights span the ray as well as the quantile "
                  "picks do, so nothing in its rays makes top-K at small K fall behind."))
+    for r in rows:
+        if r["kind"] != ROOM:
+            text.append(f"{r['scene']} ({r['kind']}): " + ("it has it" if front_loaded(r) else "it does not") +
+                        f" (top-K leaves {r['topk_behind']:.0%} unseen, Q-Render {r['quantile_behind']:.0%}).")
     return " ".join(text)
 
 
 def ray_depth_section(results: dict) -> list[str]:
     """The report's lines of the ray-depth study (none when the results have none)."""
-    rows = results.get("ray_depths")
+    depth = results.get("depth_rooms")
+    rows = (results.get("ray_depths") or []) + ([{**depth["ray_depth"], "kind": DEPTH_ROOM}] if depth else [])
     if not rows:
         return []
     k = rows[0]["k"]
@@ -196,4 +212,22 @@ def ray_depth_section(results: dict) -> list[str]:
                      f"{r['spread_rays']:.0%} | " + " | ".join(
                          f"{cell(r[f'{s}_front'], '.2f')} | {cell(r[f'{s}_behind'], '.0%')} | {cell(r[f'{s}_gap'], '.3f')} "
                          f"| {cell(r[f'{s}_mismatch'], '.1%')}" for s in ("topk", "quantile")) + " |")
-    return lines + ["", depth_judgement(rows), ""]
+    lines += ["", depth_judgement(rows), ""]
+    if depth:
+        lines += depth_room_lines(depth)
+    return lines
+
+
+def depth_room_lines(depth: dict) -> list[str]:
+    """The lines of the top-K / Q-Render comparison on the rooms with the depth structure."""
+    k = depth["ray_depth"]["k"]
+    lines = [f"Rooms with the structure ({DEPTH_ROOM}: SyntheticConfig {depth['room']}; "
+             f"{len(depth['scenes']['train'])} training rooms, held-out {depth['scenes']['held_out']}; the plan's budget "
+             f"and seeds, qr_cl/app/experiments/depth_rooms.py). Held-out mIoU19, mean ± std over the seeds:", "",
+             "| renderer | mIoU19 | mAcc19 | train s |", "| --- | ---: | ---: | ---: |"]
+    for sampler, name in (("topk", "top-K"), ("quantile", "Q-Render")):
+        runs = [r for r in depth["runs"] if r["sampler"] == sampler]
+        if runs:
+            stats = [Stat.of(r[key] for r in runs) for key in ("miou19", "macc19")]
+            lines.append(f"| {name} K={k} | {stats[0]} | {stats[1]} | {sum(r['train_s'] for r in runs) / len(runs):.0f} |")
+    return lines + [""]

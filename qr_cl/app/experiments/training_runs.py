@@ -37,12 +37,13 @@ def held_out_scores(held: SceneData, features: np.ndarray, gt: np.ndarray, reach
 
 
 def train_and_evaluate(plan: Plan, run: TrainingRun, train_paths: list[Path], held: SceneData, gt: np.ndarray,
-                       reached: np.ndarray, out: Path, seed: int) -> dict:
+                       reached: np.ndarray, out: Path, seed: int, prefix: str = "") -> dict:
     """Train GS-Net through ``run``'s renderer with the plan's budget (on rooms with ``run.noise``
     opacity noise) and evaluate it on the held-out room (features predicted from the room with
-    the same noise, scored against the clean room's ground truth; :func:`held_out_scores`)."""
+    the same noise, scored against the clean room's ground truth; :func:`held_out_scores`). The
+    run's folder is ``out``/runs/``prefix``<renderer>-seed<seed>."""
     scenes = [noisy_scene(p, run.noise, seed) if run.noise else p for p in train_paths]
-    name = f"{run.sampler}{run.k}" + (f"-noise{run.noise:g}" if run.noise else "") + f"-seed{seed + run.seed}"
+    name = prefix + f"{run.sampler}{run.k}" + (f"-noise{run.noise:g}" if run.noise else "") + f"-seed{seed + run.seed}"
     cfg = TrainConfig(scenes=[str(p) for p in scenes], out=str(out / "runs" / name), steps=plan.steps,
                       views=plan.views, rays=plan.rays, sampler=run.sampler, k=run.k or NOISE_K,
                       seed=seed + run.seed, checkpoint_every=plan.steps)
