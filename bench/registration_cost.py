@@ -69,10 +69,11 @@ def child(mode: str, scene: str, count: int) -> dict:
     """One measurement in this process (see the module docstring); returns its numbers."""
     from qr_cl.app.process import cap_kernel_threads, torch_threads
     cap_kernel_threads()
-    from qr_cl.app.registration.register import register, scene_views, view_plan_of
+    from qr_cl.app.registration.register import register, scene_views
+    from qr_cl.app.training.rays import camera_plan
     from qr_cl.app.scenes.folders import load_scene_folder
     data = load_scene_folder(scene)
-    view_plan_of(data.gaussians, data.frames[0].camera)
+    camera_plan(data.gaussians, data.frames[0].camera)
     if mode == "load":
         return {"gaussians": len(data.gaussians), "views": len(data.frames)}
     if mode == "register":

@@ -13,7 +13,8 @@ from qr_cl.app.evaluation.metrics import UNLABELLED, miou_macc
 from qr_cl.app.evaluation.scoring import predict
 from qr_cl.app.registration import register_ref
 from qr_cl.app.registration.contributors import top_contributors
-from qr_cl.app.registration.register import ViewMasks, register, scene_views, view_plan_of
+from qr_cl.app.registration.register import ViewMasks, register, scene_views
+from qr_cl.app.training.rays import camera_plan
 from qr_cl.app.scenes.folders import load_scene_folder
 from tests.render.test_top_contributors import meta_of, query
 
@@ -25,7 +26,7 @@ def levels(tiny_room):
 
 
 def _twin(scene, views, k):
-    metas = [view_plan_of(scene.gaussians, v.camera).meta() for v in views]
+    metas = [camera_plan(scene.gaussians, v.camera).meta() for v in views]
     return register_ref.register(metas, views, len(scene.gaussians), k)
 
 

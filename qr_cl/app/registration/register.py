@@ -23,12 +23,12 @@ from dataclasses import dataclass
 import numpy as np
 from tqdm import tqdm
 
-from ...render import rasterize_plan
 from ...runtime import channel_layout, device_zeros, to_device
 from ...scene import Camera, Gaussians
 from ...stages import RasterPlan, blend_backward
 from ..scenes.folders import SceneData, unit_rows
 from ..timing import Stopwatch
+from ..training.rays import camera_plan
 from ..training.selections import CompactSelection
 from .contributors import top_contributors
 
@@ -116,13 +116,6 @@ def mask_weight_sums(plan: RasterPlan, pixels: np.ndarray, ids: np.ndarray, weig
     return rows, blend_backward(sel, to_device(rt, dimage), channels).get()[:, :channels]
 
 
-def view_plan_of(gaussians: Gaussians, camera: Camera) -> RasterPlan:
-    """Projection and tile lists of ``gaussians`` for ``camera``."""
-    host = [np.ascontiguousarray(np.asarray(a), np.float32)
-            for a in (gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities)]
-    return rasterize_plan(*host, camera.viewmat, camera.K, camera.width, camera.height)
-
-
 def register(gaussians: Gaussians, views: Iterable[ViewMasks], k: int = DRSPLAT_K, chunk_rays: int = CHUNK_RAYS,
              progress: bool = True, total: int | None = None) -> Registration:
     """Register the masks of ``views`` (streamed: one view in memory at a time; ``total`` views
@@ -140,7 +133,7 @@ def register(gaussians: Gaussians, views: Iterable[ViewMasks], k: int = DRSPLAT_
                              "camera ([levels, H, W] expected)")
         if total_f is None:
             total_f = np.zeros((n, view.features.shape[1]), np.float32)
-        plan = view_plan_of(gaussians, cam)
+        plan = camera_plan(gaussians, cam)
         ys, xs = np.nonzero((view.masks >= 0).any(0))
         pixels = np.stack([xs, ys], 1).astype(np.int32)
         for start in range(0, len(pixels), chunk_rays):

@@ -16,6 +16,7 @@ import torch
 import torch.nn.functional as F
 
 from ...render import SelectionCache, blend, rasterize_plan
+from ...scene import Camera, Gaussians
 from ...stages import RasterPlan, Selection, select
 from ..scenes.folders import Frame, SceneData
 from .loss import cosine_logits, head_cosine_logits
@@ -43,11 +44,16 @@ def sample_rays(frame: Frame, n: int, rng: np.random.Generator) -> tuple[np.ndar
     return pixels, frame.masks[ys[pick], xs[pick]].astype(np.int64)
 
 
+def camera_plan(gaussians: Gaussians, camera: Camera) -> RasterPlan:
+    """Projection and tile lists of ``gaussians`` for ``camera``."""
+    host = [np.ascontiguousarray(np.asarray(a), np.float32)
+            for a in (gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities)]
+    return rasterize_plan(*host, camera.viewmat, camera.K, camera.width, camera.height)
+
+
 def view_plan(scene: SceneData, frame_index: int) -> RasterPlan:
     """Projection and tile lists of the scene's Gaussians for frame ``frame_index``'s camera."""
-    g, cam = scene.gaussians, scene.frames[frame_index].camera
-    host = [np.ascontiguousarray(np.asarray(a), np.float32) for a in (g.means, g.quats, g.scales, g.opacities)]
-    return rasterize_plan(*host, cam.viewmat, cam.K, cam.width, cam.height)
+    return camera_plan(scene.gaussians, scene.frames[frame_index].camera)
 
 
 def frame_selection(scene: SceneData, frame_index: int, pixels: np.ndarray, sampler: str, k: int,
