@@ -129,8 +129,9 @@ def run_reproduction(plan: Plan, mode: str, out: Path, cache: Path | None, data:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``qr-cl reproduce``."""
     parser.add_argument("--quick", action="store_true",
-                        help="the quick plan: top-K/Q-Render K in {5, 10, 40}, noise {0, 0.5, 2}, 150 steps, "
-                             "2 training rooms, 3 seeds")
+                        help="the quick plan: V-Render, top-K K=5, Q-Render K in {5, 40}, Stratified-K K=40, noise "
+                             "{0, 0.5}, 300 steps, 12 training rooms, 3 seeds; Table 2's rows; top-K against Q-Render "
+                             "at K=5 on rooms with the depth structure")
     parser.add_argument("--features", choices=tuple(FEATURE_FIELDS), default="clip",
                         help="simulated CLIP features around the real CLIP text embeddings of the class names "
                              "(default), or random nearly orthogonal class prototypes (earlier releases)")

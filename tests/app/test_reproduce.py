@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from qr_cl.app.cli import DELEGATED, build_parser, main
-from qr_cl.app.experiments.claims import Stat, at_least, combined, paper_claims, resolution
+from qr_cl.app.experiments.claims import Stat, combined, difference, exceeds, paper_claims, resolution
 from qr_cl.app.experiments.plan import PLANS, TrainingRun, plan_runs
 from qr_cl.app.experiments.report import report_markdown, write_report
 from qr_cl.app.experiments.rgb import psnr
@@ -163,31 +163,49 @@ def test_renderers_of_the_plans():
     assert all(r.sampler == "quantile" and r.k == 40 for r in full if r.noise)
     assert len(full) == 3 * len({r.label for r in full})
     assert len(plan_runs(PLANS["quick"])) < len(full)
+    quick = {(r.sampler, r.k) for r in plan_runs(PLANS["quick"])}
+    assert ("topk", 5) in quick and ("topk", 40) not in quick and ("quantile", 40) in quick
 
 
 def test_stat_and_verdicts():
     s = Stat.of([40.0, 42.0, 44.0])
     assert (s.mean, s.std, s.n) == (42.0, 2.0, 3) and str(s) == "42.0 ± 2.0" and str(Stat.of([5.0])) == "5.0"
     assert Stat.of([5.0]).std == 0.0
-    assert at_least(Stat(50, 1, 3), Stat(45, 1, 3)) == "reproduced"            # 49 > 46
-    assert at_least(Stat(50, 3, 3), Stat(45, 3, 3)) == "undecided"             # bands overlap
-    assert at_least(Stat(40, 1, 3), Stat(45, 1, 3)) == "not reproduced"
-    assert at_least(Stat(44, 0.5, 3), Stat(45, 0.2, 3), -2.0) == "reproduced"  # margin: a >= b - 2
-    assert at_least(None, Stat(1, 0, 1)) == "not measured"
+    assert exceeds(Stat(5, 1, 3), 3.0) == "reproduced"                 # 4 > 3
+    assert exceeds(Stat(5, 3, 3), 3.0) == "undecided"                  # 3 lies in [2, 8]
+    assert exceeds(Stat(1, 1, 3), 3.0) == "not reproduced"
+    assert exceeds(Stat(-1.5, 0.2, 3), -2.0) == "reproduced"           # margin: a >= b - 2
+    assert exceeds(None) == "not measured"
     assert combined(["reproduced", "reproduced"]) == "reproduced"
     assert combined(["reproduced", "undecided"]) == "undecided"
     assert combined(["undecided", "not reproduced"]) == "not reproduced"
     assert combined([]) == "not measured"
 
 
+def test_differences_pair_the_seeds():
+    a = [{"seed": s, "miou19": v} for s, v in enumerate((10.0, 20.0, 30.0))]
+    b = [{"seed": s, "miou19": v} for s, v in enumerate((9.0, 19.0, 29.0))]
+    d = difference(a, b)
+    assert (d.mean, d.std, d.n) == (1.0, 0.0, 3)                      # the seeds' shared swing cancels
+    assert exceeds(d, 0.5) == "reproduced" and exceeds(Stat.of([10.0, 20.0, 30.0]), 19.0) == "undecided"
+    one = [{"miou19": 12.0}]                                           # no seed: Dr.Splat's registration
+    assert difference(a, one) == Stat.of([-2.0, 8.0, 18.0]) and difference(one, a) == Stat.of([2.0, -8.0, -18.0])
+    assert difference(a, [{"train_seed": 7, "miou19": 1.0}, {"train_seed": 8, "miou19": 2.0}]) is None
+    assert difference(a, []) is None and difference(None, a) is None
+    assert [r["seed"] for r in a] == [0, 1, 2]
+    assert resolution(Stat(1, 0.3, 3), None) == "-" and resolution(Stat(1, 0.3, 3), Stat(2, 1.5, 3)) == "±1.5 points"
+
+
 def _results(q5: float = 30.0, t5: float = 25.0, noise_half: float = 40.5, strat_ms: float = 20.0,
-             drsplat: float = 18.0, overfit: float = 52.0, spread: float = 0.2) -> dict:
+             drsplat: float = 18.0, overfit: float = 52.0, spread: float = 0.2, anti: bool = False) -> dict:
     """Results of runs over three seeds, each run's mIoU19 its value -spread, 0, +spread (standard
-    deviation ``spread``)."""
+    deviation ``spread``); with ``anti`` V-Render's and top-K's seeds swing the other way, so their
+    paired differences to the others spread by twice ``spread``."""
     def run(sampler, k, miou, noise=0.0):
+        sign = -1 if anti and sampler in ("volume", "topk") else 1
         return [{"sampler": sampler, "k": k, "noise": noise, "seed": seed,
                  "label": TrainingRun(sampler, k, noise, seed).label, "steps": 10, "train_s": 1.0,
-                 "final_loss": 0.5, "miou19": miou + d, "macc19": miou + d + 5, "miou15": miou + 1, "macc15": 0.0,
+                 "final_loss": 0.5, "miou19": miou + sign * d, "macc19": miou + d + 5, "miou15": miou + 1, "macc15": 0.0,
                  "miou10": miou + 2, "macc10": 0.0, "miou19_reached": miou + 3, "macc19_reached": miou + 4}
                 for seed, d in enumerate((-spread, 0.0, spread))]
     runs = [*run("volume", 0, 40.0), *run("topk", 5, t5), *run("quantile", 5, q5), *run("quantile", 40, 40.5),
@@ -240,9 +258,12 @@ def test_claims_follow_the_numbers_over_seeds():
     assert _verdicts(_results()) == ["reproduced"] * 5
     assert _verdicts(_results(q5=30.0, t5=28.0, noise_half=38.0, strat_ms=10.5)) == [
         "reproduced", "not reproduced", "not reproduced", "not reproduced", "reproduced"]
-    # wide spreads: the same means no longer decide the close claims
-    wide = _verdicts(_results(q5=30.0, t5=26.0, spread=2.0))
-    assert wide[1] == "undecided" and wide[0] == "undecided"
+    # the seeds swing together: paired, the same means are decided even with wide spreads ...
+    assert _verdicts(_results(q5=30.0, t5=26.0, spread=2.0))[:2] == ["reproduced", "reproduced"]
+    # ... and not when V-Render's and top-K's seeds swing the other way
+    wide = paper_claims(_results(q5=30.0, t5=26.0, spread=2.0, anti=True))
+    assert [c["verdict"] for c in wide[:2]] == ["undecided", "undecided"]
+    assert wide[1]["resolution"] == "±4.0 points" and "Δ +4.0 ± 4.0" in wide[1]["measured"]
     bad = _results()
     bad["rgb"][0]["psnr_alpha"] = 25.0
     for r in bad["runs"]:
@@ -254,10 +275,9 @@ def test_claims_follow_the_numbers_over_seeds():
     missing["rgb"] = []
     claims = _verdicts(missing)
     assert claims[1] == claims[4] == "not measured"
-    resolved = paper_claims(_results(spread=0.5))
-    assert resolved[1]["resolution"] == "> 1.0 points"     # two spreads of 0.5 (top-K, Q-Render K=5)
-    assert resolution((Stat(1, 0.3, 3), Stat(2, 0.2, 3)), (Stat(1, 1.0, 3), None)) == "-"
-    assert resolution((Stat(1, 0.3, 3), Stat(2, 0.2, 3)), (Stat(1, 1.0, 3), Stat(2, 0.5, 3))) == "> 1.5 points"
+    depth = _results()
+    depth["depth_rooms"] = {"ray_depth": {"k": 5}, "runs": [r for r in depth["runs"] if r["k"] == 5]}
+    assert [c["verdict"] for c in paper_claims(depth)][2] == "reproduced"   # 30 vs 25 on those rooms too
 
 
 def test_table2_claims():
@@ -265,7 +285,9 @@ def test_table2_claims():
     verdicts = [c["verdict"] for c in table2_claims(_results(drsplat=18.0, overfit=52.0))]
     assert verdicts == ["reproduced", "reproduced", "reproduced"]              # 40.5 / 18 = 2.25
     verdicts = [c["verdict"] for c in table2_claims(_results(drsplat=41.0, overfit=40.4))]
-    assert verdicts == ["not reproduced", "undecided", "not reproduced"]
+    assert verdicts == ["not reproduced", "not reproduced", "not reproduced"]   # paired: -0.1 ± 0.0
+    verdicts = [c["verdict"] for c in table2_claims(_results(drsplat=40.4, overfit=40.6))]
+    assert verdicts[:2] == ["undecided", "reproduced"]                          # 40.5 ± 0.2 - 40.4
     assert [c["verdict"] for c in table2_claims(_results(drsplat=12.0))][2] == "not reproduced"   # 3.4
     none = _results()
     del none["overfit"], none["drsplat"]

@@ -2,12 +2,15 @@
 those results the report shares).
 
 Every training run of a plan is repeated with ``plan.seeds`` seeds; a quantity is its mean and
-standard deviation over them (:class:`Stat`). A claim "a >= b + margin" is **reproduced** when
-a's band (mean +- std) lies wholly above b + margin's band, **not reproduced** when wholly below,
-and **undecided** when the bands overlap; **not measured** when a run it needs is missing. So the
-seeds decide a difference a - b (past the claim's margin) only when it exceeds the sum of the two
-standard deviations: every claim states that resolution (:func:`resolution`), which an undecided
-claim lacks.
+standard deviation over them (:class:`Stat`). A seed gives every run the same network
+initialisation, rays and scene order, so two runs of one seed differ by their renderer (or
+training rooms) alone: a claim "a >= b + margin" is judged on the paired differences a_s - b_s
+over the seeds (:func:`difference`; a quantity without seeds, Dr.Splat's registration, is
+subtracted from every seed). It is **reproduced** when the difference's band (mean +- std) lies
+wholly above the margin, **not reproduced** when wholly below, **undecided** when the margin
+falls inside it, and **not measured** when a run it needs is missing. So the seeds resolve a
+difference only where it is farther from the margin than its own standard deviation: every claim
+states that resolution (:func:`resolution`), which an undecided claim lacks.
 """
 from __future__ import annotations
 
@@ -79,23 +82,55 @@ def cosine_to_volume(results: dict, sampler: str, k: int = 0) -> float | None:
     return None if row is None else row["cosine"]
 
 
-def at_least(a: Stat | None, b: Stat | None, margin: float = 0.0) -> str:
-    """The verdict on "a >= b + margin" (module docstring)."""
-    if a is None or b is None:
+def entry_seed(entry: dict) -> int | None:
+    """The training seed of a result entry (``train_seed``, else the run's ``seed`` offset; None
+    for an entry without one)."""
+    return entry.get("train_seed", entry.get("seed"))
+
+
+def difference(a: list[dict] | None, b: list[dict] | None, key: str = "miou19") -> Stat | None:
+    """``key`` of the entries ``a`` minus those of ``b``, paired by training seed over the seeds
+    both have; a side with one entry (no seeds: Dr.Splat's registration) is subtracted from, or
+    from, every entry of the other. None when a side is missing or no seed pairs."""
+    if not a or not b:
+        return None
+    va, vb = {entry_seed(e): e[key] for e in a}, {entry_seed(e): e[key] for e in b}
+    if len(vb) == 1 and len(va) > 1:
+        diffs = [x - next(iter(vb.values())) for x in va.values()]
+    elif len(va) == 1 and len(vb) > 1:
+        diffs = [next(iter(va.values())) - y for y in vb.values()]
+    else:
+        diffs = [va[seed] - vb[seed] for seed in va if seed in vb]
+    return Stat.of(diffs) if diffs else None
+
+
+def exceeds(d: Stat | None, margin: float = 0.0) -> str:
+    """The verdict on "a >= b + margin" from the paired difference ``d`` = a - b (module docstring)."""
+    if d is None:
         return "not measured"
-    if a.mean - a.std > b.mean + margin + b.std:
+    if d.mean - d.std > margin:
         return "reproduced"
-    if a.mean + a.std < b.mean + margin - b.std:
+    if d.mean + d.std < margin:
         return "not reproduced"
     return "undecided"
 
 
-def resolution(*pairs: tuple[Stat | None, Stat | None]) -> str:
-    """The smallest difference between the two quantities of each pair (a, b) that their bands
-    decide, the largest over the pairs: std(a) + std(b) points ("-" when one is missing)."""
-    if not pairs or any(a is None or b is None for a, b in pairs):
+def negated(d: Stat | None) -> Stat | None:
+    """b - a from a - b."""
+    return None if d is None else Stat(-d.mean, d.std, d.n)
+
+
+def resolution(*ds: Stat | None) -> str:
+    """How far from its margin a claim's difference must lie for its seeds to decide it: the
+    largest standard deviation of its paired differences ``ds`` ("-" when one is missing)."""
+    if not ds or any(d is None for d in ds):
         return "-"
-    return f"> {max(a.std + b.std for a, b in pairs):.1f} points"
+    return f"±{max(d.std for d in ds):.1f} points"
+
+
+def delta(d: Stat | None) -> str:
+    """The paired difference as the reports print it."""
+    return "-" if d is None else f"Δ {d.mean:+.1f} ± {d.std:.1f}"
 
 
 def combined(verdicts: list[str]) -> str:
@@ -108,10 +143,6 @@ def combined(verdicts: list[str]) -> str:
     return "reproduced" if all(v == "reproduced" for v in verdicts) else "undecided"
 
 
-def _diff(a: Stat, b: Stat) -> str:
-    return f"{a.mean - b.mean:+.1f}"
-
-
 def paper_claims(results: dict, tolerance: float = 1.0) -> list[dict]:
     """The paper's renderer claims judged on ``results`` (held-out mIoU19 in points, over seeds):
     each {"claim", "measured", "verdict", "resolution"} with a verdict of :data:`VERDICTS`. ``tolerance``: the points
@@ -119,41 +150,47 @@ def paper_claims(results: dict, tolerance: float = 1.0) -> list[dict]:
     claims = []
     v = metric(results, "volume")
     qks = sorted({r["k"] for r in results["runs"] if r["sampler"] == "quantile" and r["k"] >= 10 and not r["noise"]})
-    qs = {k: metric(results, "quantile", k) for k in qks}
+    qs = {k: (metric(results, "quantile", k), difference(runs_of(results, "quantile", k), runs_of(results, "volume")))
+          for k in qks}
     claims.append({"claim": f"Q-Render >= V-Render - {tolerance:g} at K >= 10",
-                   "measured": "; ".join(f"K={k}: {q} vs {v}" for k, q in qs.items()) if v and qs else "-",
-                   "verdict": combined([at_least(q, v, -tolerance) for q in qs.values()]) if v else "not measured",
-                   "resolution": resolution(*((q, v) for q in qs.values()))})
+                   "measured": "; ".join(f"K={k}: {q} vs {v} ({delta(d)})" for k, (q, d) in qs.items())
+                   if v and qs else "-",
+                   "verdict": combined([exceeds(d, -tolerance) for _, d in qs.values()]) if v else "not measured",
+                   "resolution": resolution(*(d for _, d in qs.values()))})
     t5, q5 = metric(results, "topk", 5), metric(results, "quantile", 5)
+    d5 = difference(runs_of(results, "quantile", 5), runs_of(results, "topk", 5))
     claims.append({"claim": "top-K at K=5 at least 3 points below Q-Render at K=5",
-                   "measured": f"top-K {t5} vs Q-Render {q5} ({_diff(t5, q5)})" if t5 and q5 else "-",
-                   "verdict": at_least(q5, t5, 3.0), "resolution": resolution((q5, t5))})
+                   "measured": f"top-K {t5} vs Q-Render {q5} ({delta(d5)})" if t5 and q5 else "-",
+                   "verdict": exceeds(d5, 3.0), "resolution": resolution(d5)})
     depth = results.get("depth_rooms")
     if depth:
         k, sub = depth["ray_depth"]["k"], {"runs": depth["runs"]}
         td, qd = metric(sub, "topk", k), metric(sub, "quantile", k)
+        dd = difference(runs_of(sub, "quantile", k), runs_of(sub, "topk", k))
         claims.append({"claim": f"top-K at K={k} at least 3 points below Q-Render at K={k} on rooms with the depth "
                                 "structure where top-K fails (thick semi-transparent shells)",
-                       "measured": f"top-K {td} vs Q-Render {qd} ({_diff(td, qd)})" if td and qd else "-",
-                       "verdict": at_least(qd, td, 3.0), "resolution": resolution((qd, td))})
+                       "measured": f"top-K {td} vs Q-Render {qd} ({delta(dd)})" if td and qd else "-",
+                       "verdict": exceeds(dd, 3.0), "resolution": resolution(dd)})
     clean = metric(results, "quantile", NOISE_K)
     scales = sorted({r["noise"] for r in results["runs"] if 0 < r["noise"] <= 0.5})
-    mild = {s: metric(results, "quantile", NOISE_K, s) for s in scales}
+    mild = {s: (metric(results, "quantile", NOISE_K, s),
+                difference(runs_of(results, "quantile", NOISE_K, s), runs_of(results, "quantile", NOISE_K)))
+            for s in scales}
     claims.append({"claim": f"robust to opacity noise up to 0.5 (within {tolerance:g} point)",
-                   "measured": "; ".join(f"noise {s:g}: {m} vs clean {clean}" for s, m in mild.items())
+                   "measured": "; ".join(f"noise {s:g}: {m} vs clean {clean} ({delta(d)})" for s, (m, d) in mild.items())
                    if clean and mild else "-",
-                   "verdict": combined([at_least(m, clean, -tolerance) for m in mild.values()]) if clean else
-                   "not measured", "resolution": resolution(*((m, clean) for m in mild.values()))})
+                   "verdict": combined([exceeds(d, -tolerance) for _, d in mild.values()]) if clean else
+                   "not measured", "resolution": resolution(*(d for _, d in mild.values()))})
     strat = metric(results, "stratified", NOISE_K)
+    ds = difference(runs_of(results, "stratified", NOISE_K), runs_of(results, "quantile", NOISE_K))
     t_s, t_q = render_ms(results, "stratified", NOISE_K), render_ms(results, "quantile", NOISE_K)
     name = f"Stratified-K on par (within {tolerance:g} point) at about half Q-Render's speed (K=40)"
     if strat and clean and t_s and t_q:
         ratio = t_s / t_q
         speed = "reproduced" if 1.5 <= ratio <= 2.5 else "not reproduced"
-        claims.append({"claim": name, "measured": f"{strat} vs {clean} ({_diff(strat, clean)}), {ratio:.2f}x "
-                                                  "Q-Render's time",
-                       "verdict": combined([at_least(strat, clean, -tolerance), at_least(clean, strat, -tolerance),
-                                            speed]), "resolution": resolution((strat, clean))})
+        claims.append({"claim": name, "measured": f"{strat} vs {clean} ({delta(ds)}), {ratio:.2f}x Q-Render's time",
+                       "verdict": combined([exceeds(ds, -tolerance), exceeds(negated(ds), -tolerance), speed]),
+                       "resolution": resolution(ds)})
     else:
         claims.append({"claim": name, "measured": "-", "verdict": "not measured", "resolution": "-"})
     rgb = [r for r in results.get("rgb", []) if r["k"] >= 20]

@@ -51,7 +51,7 @@ def train_and_evaluate(plan: Plan, run: TrainingRun, train_paths: list[Path], he
     state = train(cfg).state()
     seconds = watch.seconds
     scene = load_scene_folder(noisy_scene(held.root, run.noise, seed)) if run.noise else held
-    return {**asdict(run), "label": run.label, "steps": plan.steps, "train_s": seconds,
+    return {**asdict(run), "label": run.label, "steps": plan.steps, "train_seed": seed + run.seed, "train_s": seconds,
             "final_loss": state["history"][-1], "checkpoint": str(Path(cfg.out) / "checkpoint.pt"),
             **held_out_scores(held, network_features(state, scene), gt, reached)}
 
