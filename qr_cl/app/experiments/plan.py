@@ -50,7 +50,7 @@ class Plan:
 DEPTH_ROOM = {"layers": 8.0, "thickness": 0.05, "opacity_beta": (1.0, 3.0)}
 
 #: The quick plan's budget, chosen by measurement (``bench/quick_budget.py``, reports in
-#: bench/reports/quick-budget-*): with 2 or 4 training rooms GS-Net learns walls, floors and a
+#: bench/reports/quick-budget-xeon-2cores): with 2 or 4 training rooms GS-Net learns walls, floors and a
 #: few furniture classes and then fits the training rooms; with 12 it learns cabinets, chairs and
 #: tables by 300 steps, and 600 steps or 24 rooms gain nothing more.
 PLANS = {
