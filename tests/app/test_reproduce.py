@@ -377,4 +377,5 @@ def test_smoke_run_writes_the_report(tmp_path, data_dir, capsys):
     for name in (["report.md", "miou_vs_time.png", "scene_statistics.png"] + results["profiles"]["files"]
                  + results["segmentation"]["files"]):
         assert (out / name).is_file(), name
-    assert "Report:" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "Report:" in printed and "| GS-Net overfit |" in printed and "seeds resolve" in printed
