@@ -34,8 +34,9 @@ from .contributors import top_contributors
 
 #: Dr.Splat's top-k contributors per pixel.
 DRSPLAT_K = 40
-#: Pixels registered per selection (bounds the memory of one step, whatever the image size).
-CHUNK_RAYS = 1 << 16
+#: Pixels registered per selection: bounds one step's memory whatever the image size (its V-Render
+#: walks reach the host as [pixels, longest walk] arrays to find each pixel's top K).
+CHUNK_RAYS = 1 << 14
 
 
 @dataclass
