@@ -209,7 +209,7 @@ def run(args: argparse.Namespace) -> int:
                "", "From above a corner of the room. images/gsnet: RGB | PCA of the Q-Render feature image | predicted "
                "classes | ground truth (labelled Gaussians only) | cosine of the feature image to one class's text "
                "feature (stretched). images/compared (held-out room): RGB | the predicted classes of GS-Net "
-               "generalised, Dr.Splat's registration (grey: Gaussians without a feature), GS-Net overfit and the free "
+               "generalised, Dr.Splat's registration (white: Gaussians without a feature), GS-Net overfit and the free "
                "features | ground truth. Colours also in images/gsnet/legend.md.", ""]
     report += [f"![{p.stem}]({p.relative_to(out)})" for p in pngs]
     (out / "report.md").write_text("\n".join(report) + "\n")

@@ -339,6 +339,7 @@ def test_report_writer(tmp_path):
     assert "every class above 1% of the labelled Gaussians has an IoU above 10" in text
     assert "| b | synthetic 3dgs room | 50 | 20.0% | 50% | 0.40 | 10% | 0.050 | 4.0% |" in text
     assert "| fox | real capture |" in text and "the room does not have that structure" in text
+    assert "fox (real capture): it does not" in text
 
 
 def test_cli_registers_reproduce():

@@ -26,8 +26,9 @@ from .scoring import predict
 #: The smallest panel of a picture, pixels (width, height).
 PANEL_SIZE = (320, 240)
 
-#: The colour of Gaussians predicted as no class (no feature).
-UNLABELLED_RGB = np.full(3, 0.5, np.float32)
+#: The colour of Gaussians predicted as no class (no feature): white, which tab20 (the classes'
+#: palette) does not use; its greys name classes.
+UNLABELLED_RGB = np.ones(3, np.float32)
 
 
 def _palette(ids) -> dict[int, np.ndarray]:
@@ -158,7 +159,7 @@ def write_visuals(scene: SceneData, features: np.ndarray, gt: np.ndarray, out: P
 def write_comparison(scene: SceneData, models: dict[str, np.ndarray], gt: np.ndarray, out: Path,
                      cameras: list[Camera], subset: int = 19) -> list[Path]:
     """Per camera one figure of the predicted classes of several models side by side: RGB | each
-    model's prediction (``models``: title -> per-Gaussian features [N,C]; grey: Gaussians without a
+    model's prediction (``models``: title -> per-Gaussian features [N,C]; white: Gaussians without a
     feature) | ground truth (labelled Gaussians only), with one legend. Returns the PNGs written
     (``out``/<scene>_<camera>_compared.png)."""
     out.mkdir(parents=True, exist_ok=True)
