@@ -65,5 +65,6 @@ def segmentation_study(held: SceneData, models: dict[str, np.ndarray], gt: np.nd
     images = write_visuals(held, models[main], gt, out / "images", cams)
     images += write_comparison(held, {(label if m == main else m): f for m, f in models.items()}, gt,
                                out / "images", cams)
-    return {"label": label, "models": list(models), "per_class": per_class, "min_share": MIN_SHARE, "min_iou": MIN_IOU, "below_bar": below,
+    return {"label": label, "models": list(models), "per_class": per_class, "min_share": MIN_SHARE,
+            "min_iou": MIN_IOU, "below_bar": below,
             "files": [str(p.relative_to(out)) for p in [confusion, *images] if p.suffix == ".png"]}
