@@ -105,7 +105,7 @@ def _figure(path: Path, panels: list[tuple[str, np.ndarray]], legend: list[tuple
         ax.set_axis_off()
         ax.set_title(title, fontsize=11)
     if legend:
-        handles = [plt.Rectangle((0, 0), 1, 1, color=colour) for _, colour in legend]
+        handles = [plt.Rectangle((0, 0), 1, 1, facecolor=colour, edgecolor="0.4", linewidth=0.5) for _, colour in legend]
         fig.legend(handles, [name for name, _ in legend], loc="lower center", ncol=min(len(legend), 8),
                    fontsize=10, frameon=False)
     fig.savefig(path, dpi=dpi)
