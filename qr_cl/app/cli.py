@@ -25,6 +25,7 @@ DELEGATED = {"demo": ("demo", "the embedded default job (see README)"),
              "train": ("train", "train GS-Net through a feature renderer on scene folders"),
              "eval": ("evaluate", "open-vocabulary 3D segmentation: mIoU/mAcc tables, images, PLYs"),
              "reproduce": ("reproduce", "the paper's controlled experiments on 3DGS-like rooms: report and plots"),
+             "register": ("registration.command", "Dr.Splat's training-free registration of mask features onto Gaussians"),
              "query": ("query.command", "where is some text in a scene: relevancy per Gaussian, heatmaps, PLYs"),
              "view": ("viewer.command", "a web viewer on localhost rendering the scene on the CPU"),
              "features": ("features.command", "LangSplat mask features of a scene's photos (SAM + CLIP, any torch device)")}

@@ -121,16 +121,22 @@ def test_tiny_demo_writes_the_report(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "Report:" in out
     report = (tmp_path / "demo" / "report.md").read_text()
-    for method in ("Q-Render K=40", "Q-Render K=5", "top-K K=40", "top-K K=5", "V-Render", "per-scene baseline"):
+    for method in ("Q-Render K=40", "Q-Render K=5", "top-K K=40", "top-K K=5", "V-Render", "free features",
+                   "Dr.Splat registration", "GS-Net overfit", "GS-Net generalised"):
         assert method in report, method
+    assert "per-scene baseline" not in report
     assert "held-out" in report and "training" in report
     assert "3dgs style" in out and any(p.name.startswith("splat-room-") for p in (tmp_path / "cache").iterdir())
     compared = report.split("## Renderers compared")[1].split("##")[0]
     assert sum(line.startswith("| ") for line in compared.splitlines()) == 7       # header, rule, 5 renderers
-    against = report.split("## GS-Net against the per-scene baseline")[1].split("##")[0]
-    assert against.count("/ 3 steps |") == 4                                       # GS-Net and baseline, 2 rooms
+    table2 = report.split("## Table 2")[1].split("##")[0]
+    assert sum(line.startswith("| ") for line in table2.splitlines()) == 2 + 4 + 3 + 2  # 4 rows, 3 paper rows, 2 more
+    assert "| *paper* | *23.21* |" in table2 and "labelled ones keep no feature" in table2
     res = json.loads((tmp_path / "demo" / "results.json").read_text())
-    assert len(res["rows"]) == 14 and all(0 <= r["metrics"]["19"]["macc"] <= 1 for r in res["rows"])
+    assert len(res["rows"]) == 15 and all(0 <= r["metrics"]["19"]["macc"] <= 1 for r in res["rows"])
+    assert 0 < res["registration"]["reached"] <= res["registration"]["gaussians"]
+    assert [r["split"] for r in res["rows"][-3:]] == ["held-out"] * 3              # per-scene methods: held-out only
+    assert len(list((tmp_path / "demo" / "images" / "compared").glob("*_compared.png"))) == 2
     assert all(0 <= r["reached"]["macc"] <= 1 for r in res["rows"])
     assert (tmp_path / "demo" / "runs" / "gsnet-q40" / "checkpoint.pt").is_file()
 

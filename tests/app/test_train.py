@@ -1,4 +1,4 @@
-"""Training: the loss falls on a tiny scene; --resume continues exactly; the loss itself; baseline."""
+"""Training: the loss falls on a tiny scene; --resume continues exactly; the loss itself; the free-feature fit."""
 from __future__ import annotations
 
 import numpy as np
@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from qr_cl.app.scenes.folders import load_scene_folder
-from qr_cl.app.training.baseline import fit_free_features
+from qr_cl.app.training.free_features import fit_free_features
 from qr_cl.app.training.config import TrainConfig
 from qr_cl.app.training.loss import contrastive_loss
 from qr_cl.app.training.rays import sample_rays
@@ -68,7 +68,7 @@ def test_resume_continues_exactly(scene, tmp_path):
         train(_cfg(scene, tmp_path / "b", steps=7, lr=0.5), resume=True, progress=False)
 
 
-def test_baseline_fits_one_scene(scene):
+def test_free_features_fit_one_scene(scene):
     data = load_scene_folder(scene)
     cfg = _cfg(scene, "-", steps=15, rays=256)
     feats = fit_free_features(data, cfg, progress=False)

@@ -62,7 +62,7 @@ def ground_truth(scene: SceneData, source: str = "auto", k: int = 5, max_mahalan
 def reached_gaussians(scene: SceneData, sampler: str = "quantile", k: int = 40) -> np.ndarray:
     """[N] bool: the Gaussians that ``sampler``'s selection (``k``) of some pixel of some view of
     ``scene`` holds, i.e. those its training rays can reach. A per-scene model (the free-feature
-    baseline) learns only these; GS-Net predicts every Gaussian from its neighbourhood."""
+    fit) learns only these; GS-Net predicts every Gaussian from its neighbourhood."""
     reached = np.zeros(len(scene.gaussians), bool)
     for view in range(len(scene.frames)):
         sel = select(view_plan(scene, view), sampler, k)

@@ -2,11 +2,16 @@
 
 Class ids are NYU40 ids. :data:`SUBSETS` holds the 19 / 15 / 10 evaluated classes; :data:`NYU40_NAMES`
 names them (plus the small objects the synthetic rooms place on furniture: pillow, books,
-television, box and lamp, unlisted classes that evaluation ignores).
+television, box and lamp, unlisted classes that evaluation ignores). A prediction of
+:data:`UNLABELLED` (a Gaussian without a feature, e.g. one no pixel registers) names no class: it
+counts against its ground-truth class's IoU and accuracy and for no other class.
 """
 from __future__ import annotations
 
 import numpy as np
+
+#: The prediction of a Gaussian that has no feature to classify.
+UNLABELLED = -1
 
 NYU40_NAMES: dict[int, str] = {
     1: "wall", 2: "floor", 3: "cabinet", 4: "bed", 5: "chair", 6: "sofa", 7: "table", 8: "door",
@@ -26,7 +31,8 @@ def confusion_matrix(pred: np.ndarray, gt: np.ndarray, class_ids) -> np.ndarray:
     """Confusion counts [K,K] (row = ground truth, column = prediction) over ``class_ids`` (K ids).
 
     pred, gt: [N] integer class ids. Elements whose ground truth is not in ``class_ids`` (e.g. -1,
-    unlisted classes) are ignored; a prediction outside ``class_ids`` raises ValueError.
+    unlisted classes) are ignored; predictions of :data:`UNLABELLED` are in no column; any other
+    prediction outside ``class_ids`` raises ValueError.
     """
     pred, gt = np.asarray(pred).ravel(), np.asarray(gt).ravel()
     if pred.shape != gt.shape:
@@ -36,23 +42,26 @@ def confusion_matrix(pred: np.ndarray, gt: np.ndarray, class_ids) -> np.ndarray:
     gt_idx = np.array([lut.get(int(c), -1) for c in gt], np.int64) if gt.size else np.zeros(0, np.int64)
     keep = gt_idx >= 0
     pred_idx = np.array([lut.get(int(c), -1) for c in pred[keep]], np.int64)
-    if (pred_idx < 0).any():
+    if ((pred_idx < 0) & (pred[keep] != UNLABELLED)).any():
         raise ValueError(f"predictions contain ids outside the evaluated classes {ids.tolist()}")
     k = len(ids)
-    return np.bincount(gt_idx[keep] * k + pred_idx, minlength=k * k).reshape(k, k)
+    named = pred_idx >= 0
+    return np.bincount(gt_idx[keep][named] * k + pred_idx[named], minlength=k * k).reshape(k, k)
 
 
 def miou_macc(pred: np.ndarray, gt: np.ndarray, class_ids) -> dict:
     """mIoU and mAcc (fractions in [0,1]) over the classes of ``class_ids`` present in ``gt``.
 
     IoU_c = TP / (TP + FP + FN), Acc_c = TP / (TP + FN) (per-class recall), both counted on the
-    elements whose ground truth is one of ``class_ids``. Returns {"miou", "macc", "per_class":
-    {id: {"iou", "acc", "support"}}, "n_evaluated"}; miou/macc are NaN when no class is present.
+    elements whose ground truth is one of ``class_ids`` (:data:`UNLABELLED` predictions among them
+    are misses). Returns {"miou", "macc", "per_class": {id: {"iou", "acc", "support"}},
+    "n_evaluated", "unlabelled"}; miou/macc are NaN when no class is present.
     """
     ids = list(class_ids)
     cm = confusion_matrix(pred, gt, ids).astype(np.float64)
     tp = np.diag(cm)
-    support = cm.sum(1)
+    evaluated = np.isin(np.asarray(gt).ravel(), np.asarray(ids, np.int64))
+    support = np.array([np.count_nonzero(np.asarray(gt).ravel() == c) for c in ids], np.float64)
     predicted = cm.sum(0)
     present = support > 0
     iou = tp / np.maximum(support + predicted - tp, 1)
@@ -61,4 +70,5 @@ def miou_macc(pred: np.ndarray, gt: np.ndarray, class_ids) -> dict:
                  for i, c in enumerate(ids) if present[i]}
     return {"miou": float(iou[present].mean()) if present.any() else float("nan"),
             "macc": float(acc[present].mean()) if present.any() else float("nan"),
-            "per_class": per_class, "n_evaluated": int(support.sum())}
+            "per_class": per_class, "n_evaluated": int(support.sum()),
+            "unlabelled": int(np.count_nonzero(evaluated & (np.asarray(pred).ravel() == UNLABELLED)))}

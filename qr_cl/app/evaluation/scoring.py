@@ -7,13 +7,15 @@ import math
 import numpy as np
 
 from ..scenes.folders import ClassTable, SceneData
-from .metrics import SUBSETS, miou_macc
+from .metrics import SUBSETS, UNLABELLED, miou_macc
 
 
 def predict(features: np.ndarray, classes: ClassTable) -> np.ndarray:
-    """Class id [N] of the text feature most cosine-similar to each row of ``features`` [N,C]."""
-    f = features / np.maximum(np.linalg.norm(features, axis=1, keepdims=True), 1e-12)
-    return classes.ids[(f @ classes.text_features.T).argmax(1)]
+    """Class id [N] of the text feature most cosine-similar to each row of ``features`` [N,C];
+    :data:`~.metrics.UNLABELLED` for a zero row (a Gaussian without a feature)."""
+    norms = np.linalg.norm(features, axis=1, keepdims=True)
+    f = features / np.maximum(norms, 1e-12)
+    return np.where(norms[:, 0] > 0, classes.ids[(f @ classes.text_features.T).argmax(1)], UNLABELLED)
 
 
 def evaluate_features(scene: SceneData, features: np.ndarray, gt: np.ndarray, subsets=(19, 15, 10)) -> dict:

@@ -1,6 +1,7 @@
 """Pictures of a segmentation: per camera one figure of RGB | PCA of the rendered features |
 predicted classes | ground truth | relevancy of one text query, with titles and a legend naming
-the classes predicted or labelled in the scene; a coloured and labelled PLY of the Gaussians; the colour legend as markdown.
+the classes predicted or labelled in the scene; a coloured and labelled PLY of the Gaussians; the colour legend as markdown;
+and figures of several models' predictions side by side (:func:`write_comparison`).
 
 The relevancy panel is the cosine similarity between the Q-Render (K=40) feature image and the
 query's text feature (from the scene's classes.json), shown with the turbo colour map stretched
@@ -19,11 +20,15 @@ from ...runtime import SH_C0
 from ...scene import Camera, Gaussians
 from ..images import plt
 from ..scenes.folders import ClassTable, SceneData, unit_rows
-from .metrics import NYU40_NAMES, SUBSETS
+from .metrics import NYU40_NAMES, SUBSETS, UNLABELLED
 from .scoring import predict
 
 #: The smallest panel of a picture, pixels (width, height).
 PANEL_SIZE = (320, 240)
+
+#: The colour of Gaussians predicted as no class (no feature): white, which tab20 (the classes'
+#: palette) does not use; its greys name classes.
+UNLABELLED_RGB = np.ones(3, np.float32)
 
 
 def _palette(ids) -> dict[int, np.ndarray]:
@@ -100,7 +105,7 @@ def _figure(path: Path, panels: list[tuple[str, np.ndarray]], legend: list[tuple
         ax.set_axis_off()
         ax.set_title(title, fontsize=11)
     if legend:
-        handles = [plt.Rectangle((0, 0), 1, 1, color=colour) for _, colour in legend]
+        handles = [plt.Rectangle((0, 0), 1, 1, facecolor=colour, edgecolor="0.4", linewidth=0.5) for _, colour in legend]
         fig.legend(handles, [name for name, _ in legend], loc="lower center", ncol=min(len(legend), 8),
                    fontsize=10, frameon=False)
     fig.savefig(path, dpi=dpi)
@@ -121,10 +126,11 @@ def write_visuals(scene: SceneData, features: np.ndarray, gt: np.ndarray, out: P
     text = scene.classes.text_features[scene.classes.names.index(query)]
     pred = predict(features, table)
     palette = _palette(table.ids)
-    pred_rgb = np.stack([palette[int(c)] for c in pred])
+    pred_rgb = np.stack([palette.get(int(c), UNLABELLED_RGB) for c in pred])
     gt_rgb = np.stack([palette.get(int(c), np.zeros(3, np.float32)) for c in gt])
     labelled = np.isin(gt, table.ids)
     legend = [(name, palette[int(c)]) for c, name in zip(table.ids, table.names) if (pred == c).any() or (gt == c).any()]
+    legend += [("no feature", UNLABELLED_RGB)] if (pred == UNLABELLED).any() else []
     g = scene.gaussians
     files = []
     for i, cam in enumerate(cameras):
@@ -148,3 +154,30 @@ def write_visuals(scene: SceneData, features: np.ndarray, gt: np.ndarray, out: P
         f"| {NYU40_NAMES.get(int(c), c)} | #{''.join(f'{int(round(x * 255)):02x}' for x in palette[int(c)])} |\n"
         for c in table.ids))
     return files + [ply, legend_md]
+
+
+def write_comparison(scene: SceneData, models: dict[str, np.ndarray], gt: np.ndarray, out: Path,
+                     cameras: list[Camera], subset: int = 19) -> list[Path]:
+    """Per camera one figure of the predicted classes of several models side by side: RGB | each
+    model's prediction (``models``: title -> per-Gaussian features [N,C]; white: Gaussians without a
+    feature) | ground truth (labelled Gaussians only), with one legend. Returns the PNGs written
+    (``out``/<scene>_<camera>_compared.png)."""
+    out.mkdir(parents=True, exist_ok=True)
+    table = scene.classes.subset(SUBSETS[subset])
+    palette = _palette(table.ids)
+    preds = {name: predict(features, table) for name, features in models.items()}
+    shown = np.concatenate([*preds.values(), gt])
+    legend = [(name, palette[int(c)]) for c, name in zip(table.ids, table.names) if (shown == c).any()]
+    legend += [("no feature", UNLABELLED_RGB)] if (shown == UNLABELLED).any() else []
+    gt_rgb = np.stack([palette.get(int(c), np.zeros(3, np.float32)) for c in gt])
+    g = scene.gaussians
+    files = []
+    for i, cam in enumerate(cameras):
+        panels = [("RGB", _render(scene, np.maximum(g.sh[:, 0] * SH_C0 + 0.5, 0), cam, "volume"))]
+        panels += [(name, _render(scene, np.stack([palette.get(int(c), UNLABELLED_RGB) for c in pred]), cam, "volume"))
+                   for name, pred in preds.items()]
+        panels.append(("ground truth", _render(scene, gt_rgb, cam, "volume", np.isin(gt, table.ids))))
+        path = out / f"{scene.name}_{cam.name or f'camera{i}'}_compared.png"
+        _figure(path, panels, legend)
+        files.append(path)
+    return files

@@ -15,10 +15,12 @@ from ..scenes.synthetic import build_folder, room_folder
 from .plan import Plan
 
 
-def splat_rooms(plan: Plan, seed: int, cache: Path | None, features: str = "clip") -> tuple[list[Path], Path]:
+def splat_rooms(plan: Plan, seed: int, cache: Path | None, features: str = "clip",
+                room: dict | None = None) -> tuple[list[Path], Path]:
     """The folders of the plan's "3dgs" training rooms (seeds ``seed`` ...) and its held-out room
-    (seed ``seed`` + 1000) of the feature model ``features``, generated on first use."""
-    cfgs = [SyntheticConfig(seed=s, style="3dgs", features=features, **plan.room)
+    (seed ``seed`` + 1000) of the feature model ``features``, generated on first use; ``room``:
+    SyntheticConfig overrides instead of the plan's ``room``."""
+    cfgs = [SyntheticConfig(seed=s, style="3dgs", features=features, **(plan.room if room is None else room))
             for s in list(range(seed, seed + plan.train_rooms)) + [seed + 1000]]
     paths = [room_folder(c, cache) for c in tqdm(cfgs, desc="rooms", unit="room")]
     return paths[:-1], paths[-1]

@@ -1,5 +1,7 @@
-"""Study: the main run's segmentation of the held-out room: per-class IoU, the confusion matrix
-(a picture with the class names) and the segmentation pictures."""
+"""Study: the segmentation of the held-out room by the main run and the other models of Table 2:
+per-class IoU (with each class's share of the labelled Gaussians and the classes the main run
+leaves below the bar), the main run's confusion matrix (a picture with the class names), its
+segmentation pictures and the models' predictions side by side."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -8,10 +10,14 @@ import numpy as np
 
 from ..evaluation.metrics import SUBSETS, confusion_matrix, miou_macc
 from ..evaluation.scoring import predict
-from ..evaluation.visuals import PANEL_SIZE, write_visuals
+from ..evaluation.visuals import PANEL_SIZE, write_comparison, write_visuals
 from ..images import plt
 from ..scenes.folders import SceneData
 from ..scenes.views import room_overview_cameras
+
+#: The bar of the quick plan: every class above MIN_SHARE of the labelled Gaussians gets an IoU
+#: (in %) above MIN_IOU through the main run.
+MIN_SHARE, MIN_IOU = 0.01, 10.0
 
 
 def plot_confusion(counts: np.ndarray, names: list[str], path: Path, title: str) -> None:
@@ -33,20 +39,32 @@ def plot_confusion(counts: np.ndarray, names: list[str], path: Path, title: str)
     plt.close(fig)
 
 
-def segmentation_study(held: SceneData, features: np.ndarray, gt: np.ndarray, out: Path, label: str) -> dict:
-    """Per-class IoU/accuracy over the 19 classes of per-Gaussian ``features`` [N,C] against
-    ``gt`` [N], ``confusion.png`` and the pictures of :func:`write_visuals` from two views over
-    the room (into ``out``/images). Returns {"label", "per_class": [{"class", "iou", "acc",
-    "support"}], "files"}."""
+def segmentation_study(held: SceneData, models: dict[str, np.ndarray], gt: np.ndarray, out: Path,
+                       label: str) -> dict:
+    """Per-class IoU/accuracy over the 19 classes of each model's per-Gaussian features [N,C]
+    (``models``: name -> features, the main run first, titled ``label``) against ``gt`` [N], the
+    main run's ``confusion.png`` and pictures (:func:`write_visuals`) and the models side by side
+    (:func:`write_comparison`), from two views over the room (into ``out``/images). Returns
+    {"label", "models" (the names), "per_class": [{"class", "iou" and "acc" (the main run's),
+    "models": {name: IoU}, "support", "share"}], "min_share", "min_iou", "below_bar" (the classes
+    above ``MIN_SHARE`` the main run leaves at or under ``MIN_IOU``), "files"}."""
     table = held.classes.subset(SUBSETS[19])
-    pred = predict(features, table)
-    scores = miou_macc(pred, gt, table.ids)["per_class"]
-    per_class = [{"class": name, "iou": 100 * scores[int(c)]["iou"], "acc": 100 * scores[int(c)]["acc"],
-                  "support": scores[int(c)]["support"]} for c, name in zip(table.ids, table.names)
-                 if int(c) in scores]
+    preds = {name: predict(features, table) for name, features in models.items()}
+    scores = {name: miou_macc(pred, gt, table.ids)["per_class"] for name, pred in preds.items()}
+    main = next(iter(models))
+    total = max(int(np.isin(gt, table.ids).sum()), 1)
+    per_class = [{"class": name, "iou": 100 * scores[main][int(c)]["iou"], "acc": 100 * scores[main][int(c)]["acc"],
+                  "models": {m: 100 * scores[m][int(c)]["iou"] for m in models},
+                  "support": scores[main][int(c)]["support"], "share": scores[main][int(c)]["support"] / total}
+                 for c, name in zip(table.ids, table.names) if int(c) in scores[main]]
+    below = [c["class"] for c in per_class if c["share"] > MIN_SHARE and c["iou"] <= MIN_IOU]
     confusion = out / "confusion.png"
-    plot_confusion(confusion_matrix(pred, gt, table.ids), list(table.names), confusion,
+    plot_confusion(confusion_matrix(preds[main], gt, table.ids), list(table.names), confusion,
                    f"{label}: held-out room, 19 classes")
-    images = write_visuals(held, features, gt, out / "images", room_overview_cameras(held.gaussians, *PANEL_SIZE))
-    return {"label": label, "per_class": per_class,
+    cams = room_overview_cameras(held.gaussians, *PANEL_SIZE)
+    images = write_visuals(held, models[main], gt, out / "images", cams)
+    images += write_comparison(held, {(label if m == main else m): f for m, f in models.items()}, gt,
+                               out / "images", cams)
+    return {"label": label, "models": list(models), "per_class": per_class, "min_share": MIN_SHARE,
+            "min_iou": MIN_IOU, "below_bar": below,
             "files": [str(p.relative_to(out)) for p in [confusion, *images] if p.suffix == ".png"]}

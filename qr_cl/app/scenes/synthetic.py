@@ -83,7 +83,8 @@ def write_labelled_points(path: Path, points: np.ndarray, labels: np.ndarray) ->
         fh.write(table.tobytes())
 
 
-def _camera_entry(i: int, cam: Camera) -> dict:
+def camera_entry(i: int, cam: Camera) -> dict:
+    """The 3DGS cameras.json entry of camera ``i``."""
     r = cam.viewmat[:3, :3].astype(np.float64)
     return {"id": i, "img_name": cam.name, "width": cam.width, "height": cam.height,
             "position": cam.position.tolist(), "rotation": r.T.tolist(), "fx": cam.fx, "fy": cam.fy}
@@ -114,7 +115,7 @@ def write_scene(out: Path, cfg: SyntheticConfig) -> None:
     footprints = [(c[0], c[1], 0.9, 0.9) for c in centres]
     targets = centres if len(centres) else np.array([[w / 2, d / 2, 1.0]])
     cams = room_cameras(cfg, targets, footprints, rng)
-    (out / "cameras.json").write_text(json.dumps([_camera_entry(i, c) for i, c in enumerate(cams)], indent=1))
+    (out / "cameras.json").write_text(json.dumps([camera_entry(i, c) for i, c in enumerate(cams)], indent=1))
 
     model = RoomFeatures(cfg)
     text = model.text()

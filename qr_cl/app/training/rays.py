@@ -1,6 +1,6 @@
 """The rays a training step renders: pixels drawn inside masks, their selections (gathered from
 whole-view selections kept in a :class:`~qr_cl.render.SelectionCache`) re-indexed into a compact
-table of the Gaussians they use, and their loss (shared by GS-Net training and the baseline).
+table of the Gaussians they use, and their loss (shared by GS-Net training and the free-feature fit).
 
 A step touches only what its rays select: the Gaussians are frozen, so the selections of a step's
 rays (geometry only) are made first (:func:`step_rays`), the features are computed for the union
@@ -16,6 +16,7 @@ import torch
 import torch.nn.functional as F
 
 from ...render import SelectionCache, blend, rasterize_plan
+from ...scene import Camera, Gaussians
 from ...stages import RasterPlan, Selection, select
 from ..scenes.folders import Frame, SceneData
 from .loss import cosine_logits, head_cosine_logits
@@ -43,11 +44,16 @@ def sample_rays(frame: Frame, n: int, rng: np.random.Generator) -> tuple[np.ndar
     return pixels, frame.masks[ys[pick], xs[pick]].astype(np.int64)
 
 
+def camera_plan(gaussians: Gaussians, camera: Camera) -> RasterPlan:
+    """Projection and tile lists of ``gaussians`` for ``camera``."""
+    host = [np.ascontiguousarray(np.asarray(a), np.float32)
+            for a in (gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities)]
+    return rasterize_plan(*host, camera.viewmat, camera.K, camera.width, camera.height)
+
+
 def view_plan(scene: SceneData, frame_index: int) -> RasterPlan:
     """Projection and tile lists of the scene's Gaussians for frame ``frame_index``'s camera."""
-    g, cam = scene.gaussians, scene.frames[frame_index].camera
-    host = [np.ascontiguousarray(np.asarray(a), np.float32) for a in (g.means, g.quats, g.scales, g.opacities)]
-    return rasterize_plan(*host, cam.viewmat, cam.K, cam.width, cam.height)
+    return camera_plan(scene.gaussians, scene.frames[frame_index].camera)
 
 
 def frame_selection(scene: SceneData, frame_index: int, pixels: np.ndarray, sampler: str, k: int,

@@ -21,7 +21,9 @@ from matplotlib import colormaps
 
 from ...runtime import SAMPLERS
 from ...scene import Camera, look_at
+from ..evaluation.metrics import UNLABELLED
 from ..evaluation.scoring import predict
+from ..evaluation.visuals import UNLABELLED_RGB
 from ..query.pictures import heat_colours, overlay, render_rgb, render_values
 from ..query.relevancy import score, score_range
 from ..query.scene import QueryScene
@@ -118,8 +120,9 @@ class FrameRenderer:
         if features is not None and scene.classes is not None:
             pred = predict(features, scene.classes)
             palette = class_palette(scene.classes.ids)
+            palette[UNLABELLED] = UNLABELLED_RGB
             self.class_colours = np.stack([palette[int(c)] for c in pred])
-            names = dict(zip(scene.classes.ids.tolist(), scene.classes.names))
+            names = {**dict(zip(scene.classes.ids.tolist(), scene.classes.names)), UNLABELLED: "no feature"}
             ids, counts = np.unique(pred, return_counts=True)
             self.legend = [{"name": names[int(c)], "colour": to_hex(palette[int(c)]), "gaussians": int(n)}
                            for c, n in sorted(zip(ids, counts), key=lambda p: -p[1])]

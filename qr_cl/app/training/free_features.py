@@ -1,7 +1,12 @@
-"""The per-scene "memory-based" baseline: free per-Gaussian features optimized through the renderer.
+"""Free features through the renderer, no 3D term: per-Gaussian features optimized on one scene.
 
 No network: a learnable [N,C] table (rows L2-normalized before rendering, like GS-Net's output)
 is fitted to one scene's masks with the same loss, sampler, views and rays per step as GS-Net.
+Nothing ties a Gaussian to its neighbours: each ray's blend of its Gaussians matches its mask
+while the Gaussians themselves may hold noise, and the Gaussians no ray selects keep their random
+start. It is not a per-scene method from the literature (those add a 3D term, codebooks or a
+registration: :mod:`qr_cl.app.registration` is Dr.Splat's); it shows what the renderer's loss alone
+makes of free features.
 """
 from __future__ import annotations
 
@@ -18,7 +23,7 @@ from .rays import RaySettings, rays_loss, step_rays
 
 
 class BaselineSettings(RaySettings, Protocol):
-    """What the baseline reads of a run's settings (a ``TrainConfig`` has them)."""
+    """What the fit reads of a run's settings (a ``TrainConfig`` has them)."""
 
     steps: int
     seed: int
@@ -38,7 +43,7 @@ def fit_free_features(scene: SceneData, cfg: BaselineSettings, lr: float = 0.05,
     table.grad = torch.zeros_like(table)
     opt = torch.optim.Adam([table], lr=lr, fused=True)
     views = SelectionCache(1 << 30) if views is None else views
-    bar = tqdm(range(cfg.steps), desc=f"baseline {scene.name}", unit="step", disable=not progress)
+    bar = tqdm(range(cfg.steps), desc=f"free features {scene.name}", unit="step", disable=not progress)
     for step in bar:
         rays = step_rays(scene, cfg, np.random.default_rng([cfg.seed, step, 0]), views)
         rows = torch.from_numpy(rays.rows)
