@@ -413,9 +413,16 @@ class Runtime:
         width = max(1, int(self.device.native_vector_width_float))
         return width * width if width >= 8 else 8 * width
 
+    @property
+    def build_constants(self) -> dict[str, object]:
+        """The defines every program of this runtime is built with: the shared constants
+        (:data:`KERNEL_CONSTANTS`), ``ACC_FLOATS``, ``GROUP_RAYS`` and ``BLEND_GROUP``."""
+        return {**KERNEL_CONSTANTS, "ACC_FLOATS": self.accumulator_floats, "GROUP_RAYS": self.group_rays,
+                "BLEND_GROUP": self.blend_group}
+
     def kernel(self, name: str, **defines: int | float) -> tuple[cl.Kernel, tuple[KernelArg, ...]]:
-        """The kernel ``name`` built with ``-D KEY=VALUE`` per define (and the shared constants,
-        ``ACC_FLOATS`` (:attr:`accumulator_floats`), ``GROUP_RAYS`` and ``BLEND_GROUP``), with the arguments its source declares
+        """The kernel ``name`` built with ``-D KEY=VALUE`` per define (on top of
+        :attr:`build_constants`), with the arguments its source declares
         (checked against the built kernel's count). Programs and kernel objects are cached; a
         program is built once, under a lock, and published whole, so threads may ask at once."""
         file = kernel_files().get(name)
@@ -432,8 +439,7 @@ class Runtime:
 
     def _build(self, file: str, defines: dict) -> dict[str, tuple[cl.Kernel, tuple[KernelArg, ...]]]:
         """{kernel name: (kernel, declared arguments)} of ``file`` built with ``defines``."""
-        constants = {**KERNEL_CONSTANTS, "ACC_FLOATS": self.accumulator_floats, "GROUP_RAYS": self.group_rays,
-                     "BLEND_GROUP": self.blend_group, **defines}
+        constants = {**self.build_constants, **defines}
         source = kernel_source(file)
         with warnings.catch_warnings():          # some compilers (Intel's) always return a build log
             warnings.simplefilter("ignore", cl.CompilerWarning)

@@ -6,7 +6,6 @@ import pyopencl.array as cla
 import pytest
 
 from qr_cl.runtime import runtime
-from qr_cl.runtime.constants import KERNEL_CONSTANTS
 from qr_cl.runtime.device import kernel_files, kernel_source
 from qr_cl.runtime.signatures import SignatureError, kernel_signatures, preprocess
 
@@ -29,7 +28,7 @@ def test_source_signatures_equal_the_drivers_argument_info(file):
     rt = runtime()
     source = kernel_source(file)
     for defines in BUILDS.get(file, [{}]):
-        constants = {**KERNEL_CONSTANTS, "ACC_FLOATS": rt.accumulator_floats, **defines}
+        constants = {**rt.build_constants, **defines}
         program = cl.Program(rt.context, source).build(
             options=["-cl-kernel-arg-info"] + [f"-D{k}={v}" for k, v in constants.items()])
         parsed = kernel_signatures(source, constants)
