@@ -106,6 +106,19 @@ class Browser:
         self.page("Input.dispatchKeyEvent", {"type": "keyDown", "text": "\r", **enter})
         self.page("Input.dispatchKeyEvent", {"type": "keyUp", **enter})
 
+    def press(self, key: str, shift: bool = False) -> None:
+        """Press and release one printable ``key`` (with Shift held when ``shift``) on the page."""
+        event = {"key": key.upper() if shift else key, "modifiers": 8 if shift else 0}
+        self.page("Input.dispatchKeyEvent", {"type": "keyDown", "text": event["key"], **event})
+        self.page("Input.dispatchKeyEvent", {"type": "keyUp", **event})
+
+    def click(self, element_id: str) -> None:
+        """A left click at the centre of the element with id ``element_id``."""
+        x, y = self.evaluate(f"(() => {{ const r = document.getElementById({element_id!r}).getBoundingClientRect();"
+                             " return [r.x + r.width / 2, r.y + r.height / 2]; })()")
+        for kind in ("mousePressed", "mouseReleased"):
+            self.page("Input.dispatchMouseEvent", {"type": kind, "x": x, "y": y, "button": "left", "clickCount": 1})
+
     def drag(self, x0: float, y0: float, x1: float, y1: float, steps: int = 10, until: str | None = None,
              timeout: float = 60) -> None:
         """A left-button mouse drag from (x0, y0) to (x1, y1), page pixels; with ``until`` (a

@@ -1,6 +1,8 @@
-"""``qr-cl view``: the server's routes and frames, a taken port, and the page in a real headless
-Chromium (skipped where none is installed): it draws a frame, a query typed into its text box
-turns the view into that query's relevancy, and dragging renders smaller frames, then the full one."""
+"""``qr-cl view``: the server's routes and frames, a taken port, the overview and the scene's
+cameras, and the page in a real headless Chromium (skipped where none is installed): its first
+frame shows most of the scene's labelled classes, a key and a button step through the scene's
+cameras, a query typed into its text box turns the view into that query's relevancy, and dragging
+renders smaller frames, then the full one."""
 from __future__ import annotations
 
 import io
@@ -10,38 +12,61 @@ import threading
 import urllib.error
 import urllib.parse
 import urllib.request
+from contextlib import contextmanager
+from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
 from matplotlib.image import imread, imsave
 
 from qr_cl.app.cli import build_parser, main
+from qr_cl.app.demo import ROOM_GAUSSIANS
+from qr_cl.app.query.scene import load_query_scene
 from qr_cl.app.query.text import QueryError
+from qr_cl.app.scenes.room_config import SyntheticConfig
+from qr_cl.app.scenes.synthetic import room_folder
+from qr_cl.app.scenes.views import room_overview_cameras
 from qr_cl.app.viewer.command import build_server
+from qr_cl.app.viewer.frames import FrameRequest
 from qr_cl.app.viewer.server import parse_frame_request
+from qr_cl.app.viewer.views import scene_views
+from qr_cl.scene import orbit_cameras
 from tests.app.browser import Browser, find_chromium
 from tests.app.query_helpers import tiny_checkpoint
 
 SIZE = (320, 240)
+#: A class shows in a frame when at least this share of the frame's pixels have its colour.
+VISIBLE_SHARE = 0.003
+#: Largest RGB distance (channels in [0,1]) of a pixel from its class's colour: JPEG and the
+#: blending of edges move colours.
+COLOUR_TOLERANCE = 0.1
 #: The viewer's frame-time budget while moving, far below any 320x240 render, so that a drag always
 #: asks for reduced frames however fast the machine is.
 FRAME_MS = 0.01
+
+
+@contextmanager
+def serving(args: list[str]):
+    """The viewer of ``qr-cl view`` ``args`` (on a free port), serving in a thread."""
+    srv = build_server(build_parser().parse_args(["view", *args, "--port", "0"]))
+    thread = threading.Thread(target=srv.serve_forever, daemon=True)
+    thread.start()
+    try:
+        yield srv
+    finally:
+        srv.shutdown()
+        srv.server_close()
+        thread.join()
 
 
 @pytest.fixture(scope="module")
 def server(tiny_room, tmp_path_factory):
     """The viewer of the tiny room with a small trained checkpoint, serving on a free port."""
     checkpoint = tiny_checkpoint(tiny_room, tmp_path_factory.mktemp("gsnet"))
-    args = build_parser().parse_args(["view", str(tiny_room), "--checkpoint", str(checkpoint), "--port", "0",
-                                      "--width", str(SIZE[0]), "--height", str(SIZE[1]),
-                                      "--frame-ms", str(FRAME_MS)])
-    srv = build_server(args)
-    thread = threading.Thread(target=srv.serve_forever, daemon=True)
-    thread.start()
-    yield srv
-    srv.shutdown()
-    srv.server_close()
-    thread.join()
+    with serving([str(tiny_room), "--checkpoint", str(checkpoint), "--width", str(SIZE[0]), "--height",
+                  str(SIZE[1]), "--frame-ms", str(FRAME_MS)]) as srv:
+        yield srv
 
 
 def _get(url: str) -> tuple[int, dict, bytes]:
@@ -74,6 +99,35 @@ def test_frame_requests_are_checked():
             parse_frame_request(bad)
 
 
+def _framed(view: dict, means: np.ndarray, size: tuple[int, int] = SIZE) -> float:
+    """The share of ``means`` [N,3] in front of the page's camera ``view`` and inside its frame."""
+    cam = FrameRequest(tuple(view["eye"]), tuple(view["target"]), tuple(view["up"]), view["fov_y"], *size).camera()
+    xyz = means @ cam.viewmat[:3, :3].T + cam.viewmat[:3, 3]
+    z = np.maximum(xyz[:, 2], 1e-9)
+    u, v = cam.fx * xyz[:, 0] / z + cam.cx, cam.fy * xyz[:, 1] / z + cam.cy
+    return float(np.mean((xyz[:, 2] > 0) & (u >= 0) & (u < size[0]) & (v >= 0) & (v < size[1])))
+
+
+def test_the_overview_frames_the_scene(tiny_room):
+    scene = load_query_scene(tiny_room)
+    g, cams = scene.gaussians, scene.cameras
+    views = scene_views(g, cams, *SIZE)
+    assert [v["name"] for v in views] == ["overview", *(c.name for c in cams)]
+    room = room_overview_cameras(g, *SIZE, n=1)[0]                       # the demo pictures' camera
+    assert np.allclose(views[0]["eye"], room.position) and np.allclose(views[0]["up"], [0, 0, 1])
+    assert _framed(views[0], g.means) > 0.9 and _framed(views[1], g.means) < 0.5
+    assert np.allclose(views[1]["eye"], cams[0].position)
+    turn = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])                # z up -> -y up, as COLMAP's scenes
+    turned = replace(g, means=(g.means @ turn.T).astype(np.float32))
+    moved = [replace(c, viewmat=c.viewmat @ np.block([[turn.T, np.zeros((3, 1))], [np.zeros((1, 3)), 1]]))
+             for c in cams]
+    orbit = scene_views(turned, moved, *SIZE)[0]
+    assert np.dot(orbit["up"], [0, -1, 0]) > 0.9 and _framed(orbit, turned.means) > 0.95   # its cameras' up
+    bare = scene_views(g, [], *SIZE, up_axis=2)
+    assert len(bare) == 1 and bare[0]["up"] == [0, 0, 1] and _framed(bare[0], g.means) > 0.95
+    assert np.allclose(bare[0]["eye"], orbit_cameras(g.means, 1, *SIZE)[0].position)   # qr-cl render --orbit's
+
+
 def test_routes_and_frames(server):
     status, _, body = _get(server.url)
     assert status == 200 and b"<canvas" in body and b"viewer.js" in body
@@ -84,6 +138,7 @@ def test_routes_and_frames(server):
     assert info["legend"] and all(e["colour"].startswith("#") for e in info["legend"])
     assert info["camera"]["width"] == SIZE[0] and info["camera"]["radius"] > 0
     assert info["camera"]["target_ms"] == FRAME_MS
+    assert [v["name"] for v in info["camera"]["views"]][:2] == ["overview", "frame_000"]
     images = {}
     for mode, query in (("rgb", ""), ("pca", ""), ("classes", ""), ("relevancy", "wall"), ("relevancy", "floor")):
         status, headers, body = _get(_frame_url(server, mode=mode, query=query))
@@ -118,6 +173,83 @@ def browser():
     b = Browser(executable)
     yield b
     b.close()
+
+
+@contextmanager
+def labelled_viewer(room: Path, tmp: Path):
+    """(the viewer of ``room`` with its ground truth as features, the names of its labelled
+    classes): each Gaussian carries its label's text feature, so that classes mode paints every
+    Gaussian its labelled class."""
+    scene = load_query_scene(room)
+    labels, table = scene.data.gaussian_labels, scene.classes
+    rows = np.minimum(np.searchsorted(table.ids, labels), len(table.ids) - 1)
+    labelled = labels >= 0
+    assert (table.ids[rows[labelled]] == labels[labelled]).all()
+    np.save(tmp / "labels.npy", np.where(labelled[:, None], table.text_features[rows], 0).astype(np.float32))
+    with serving([str(room), "--features", str(tmp / "labels.npy"), "--width", str(SIZE[0]),
+                  "--height", str(SIZE[1])]) as srv:
+        yield srv, {table.names[r] for r in np.unique(rows[labelled])}
+
+
+def visible_classes(image: np.ndarray, legend: list[dict], share: float = VISIBLE_SHARE) -> dict[str, float]:
+    """{class name: share of the pixels of ``image`` [H,W,3] in [0,1]} for the classes of
+    ``legend`` (the viewer's, name and #rrggbb colour) that paint at least ``share`` of its
+    pixels, a pixel counting for the legend colour nearest to it within :data:`COLOUR_TOLERANCE`."""
+    colours = np.array([[int(e["colour"][i:i + 2], 16) / 255 for i in (1, 3, 5)] for e in legend])
+    distance = np.linalg.norm(image[:, :, None, :] - colours[None, None], axis=-1)
+    nearest = np.where(distance.min(-1) < COLOUR_TOLERANCE, distance.argmin(-1), -1)
+    counts = np.bincount(nearest[nearest >= 0], minlength=len(legend)) / nearest.size
+    return {e["name"]: float(c) for e, c in zip(legend, counts) if c >= share}
+
+
+def _view_frame(browser, view: str) -> np.ndarray:
+    """The page's screenshot once it has drawn the full frame of the view named ``view``."""
+    browser.wait_for(f"document.body.dataset.full === '1' && document.body.dataset.view === {view!r}")
+    return browser.screenshot("view")
+
+
+def first_view_classes(srv, labelled: set[str], browser, out: Path) -> tuple[dict, dict]:
+    """(classes the page's first frame shows in classes mode, classes the scene's first camera
+    shows), each {name: share of the pixels} (:func:`visible_classes`) among ``labelled``; the
+    frames go to ``out``. Steps there with C, back with shift+C, round to the last camera with the
+    page's previous-view button."""
+    legend = [e for e in srv.scene_info()["legend"] if e["name"] in labelled]
+    views = srv.view["views"]
+    browser.page("Page.navigate", {"url": srv.url + "?mode=classes"})
+    first = _view_frame(browser, "overview")
+    browser.press("c")                                                    # the scene's first camera
+    camera = _view_frame(browser, views[1]["name"])
+    assert browser.evaluate("document.getElementById('view-name').textContent").startswith(views[1]["name"])
+    imsave(out / "overview.png", first)
+    imsave(out / "first_camera.png", camera)
+    browser.press("c", shift=True)                                        # back to the overview
+    assert np.abs(_view_frame(browser, "overview") - first).mean() < 0.01
+    browser.click("prev-view")                                            # round to the last camera
+    last = _view_frame(browser, views[-1]["name"])
+    assert np.abs(last - camera).mean() > 0.02 and np.abs(last - first).mean() > 0.02
+    return visible_classes(first, legend), visible_classes(camera, legend)
+
+
+def _check_first_view(room: Path, browser, tmp: Path) -> None:
+    with labelled_viewer(room, tmp) as (srv, labelled):
+        shown, old = first_view_classes(srv, labelled, browser, tmp)
+    (tmp / "first_view.json").write_text(json.dumps({"labelled": sorted(labelled), "first view": shown,
+                                                     "first camera": old}, indent=1))
+    assert len(shown) > len(labelled) / 2, f"the first view shows {sorted(shown)} of {sorted(labelled)} ({tmp})"
+    # what the page opened on before: the scene's first camera fails the same check
+    assert len(old) <= len(labelled) / 2, f"the first camera shows {sorted(old)} of {sorted(labelled)} ({tmp})"
+
+
+def test_the_first_view_shows_the_scene(tiny_room, browser, tmp_path):
+    _check_first_view(tiny_room, browser, tmp_path)
+
+
+@pytest.mark.slow
+def test_the_first_view_shows_the_demo_room(browser, tmp_path):
+    """The same on the held-out room of ``qr-cl demo`` (its default seed 0 + 1000, 60k Gaussians;
+    generated into the scene cache on first use)."""
+    room = room_folder(SyntheticConfig(seed=1000, n_gaussians=ROOM_GAUSSIANS["3dgs"], style="3dgs", features="clip"))
+    _check_first_view(room, browser, tmp_path)
 
 
 def test_a_typed_query_changes_the_page(server, browser, tmp_path):

@@ -1,11 +1,13 @@
 """``qr-cl view``: a web viewer of a scene on localhost, every frame rendered by qr-cl on the CPU.
 
-The page (``static/index.html``) orbits (drag), pans (right- or shift-drag), zooms (wheel) and
-flies (W/A/S/D, Q/E) the camera; shows RGB, feature PCA, predicted classes (with a legend) or the
-relevancy of a query typed into its text box; K and the sampler are selectable. While the camera
-moves it asks for smaller frames, sized from the last frame's render time to keep about
-``--frame-ms`` (default :data:`TARGET_MS`) a frame, and the full frame once the camera rests; it
-shows the frame time.
+The page (``static/index.html``) opens on an overview that frames the whole scene (a room seen
+from above as in the pictures of ``qr-cl demo``, an orbit view otherwise; :mod:`.views`); C and
+shift+C, or its view buttons, step through the scene's own cameras and back to the overview. It
+orbits (drag), pans (right- or shift-drag), zooms (wheel) and flies (W/A/S/D, Q/E) the camera;
+shows RGB, feature PCA, predicted classes (with a legend) or the relevancy of a query typed into
+its text box; K and the sampler are selectable. While the camera moves it asks for smaller
+frames, sized from the last frame's render time to keep about ``--frame-ms`` (default
+:data:`TARGET_MS`) a frame, and the full frame once the camera rests; it shows the frame time.
 """
 from __future__ import annotations
 

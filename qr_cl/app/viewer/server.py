@@ -4,7 +4,8 @@ Routes:
 
 - ``GET /``, ``GET /viewer.js``: the page (package data in ``static/``).
 - ``GET /api/scene``: JSON: name, Gaussians, available modes, samplers, the legend of predicted
-  classes, the initial camera (eye, target, up, fov_y), frame size and the scene's radius.
+  classes, the initial camera (eye, target, up, fov_y: the scene's overview), frame size, the
+  scene's radius and the views the page steps through (the overview, then the scene's cameras).
 - ``GET /api/frame?eye=x,y,z&target=x,y,z&up=x,y,z&fov_y=D&width=W&height=H&mode=M&query=Q&sampler=S&k=K``:
   a JPEG of the frame, its render time in the ``X-Render-Ms`` header. A bad request or an
   unknown query: status 400 / 404 with JSON ``{"error": message}``.
@@ -16,7 +17,6 @@ from __future__ import annotations
 
 import io
 import json
-import math
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
 from urllib.parse import parse_qs, urlparse
@@ -25,9 +25,9 @@ import numpy as np
 from matplotlib.image import imsave
 
 from ...runtime import SAMPLERS
-from ...scene import Camera, orbit_cameras
 from ..query.text import QueryError, UnknownQueryError
 from .frames import FrameRenderer, FrameRequest
+from .views import scene_radius, scene_views
 
 #: Static files of the page: name -> content type.
 STATIC = {"index.html": "text/html; charset=utf-8", "viewer.js": "text/javascript; charset=utf-8"}
@@ -43,26 +43,15 @@ def encode_jpeg(image: np.ndarray) -> bytes:
 
 
 def initial_view(renderer: FrameRenderer, width: int, height: int, up_axis: int = 2) -> dict:
-    """The page's first camera (the scene's first camera, else an orbit view looking at the
-    centre, ``up_axis`` up) and the scene's radius (half the diagonal of its 2nd..98th
-    percentile box): {"eye", "target", "up", "fov_y", "width", "height", "radius"}."""
-    means = renderer.scene.gaussians.means
-    lo, hi = np.percentile(means, 2, axis=0), np.percentile(means, 98, axis=0)
-    radius = float(0.5 * np.linalg.norm(hi - lo))
-    cams = renderer.scene.cameras
-    if cams:
-        ups = np.stack([-c.viewmat[1, :3] for c in cams])
-        up = ups.mean(0) / max(np.linalg.norm(ups.mean(0)), 1e-12)
-        first: Camera = cams[0]
-        fov_y = math.degrees(2 * math.atan(0.5 * first.height / first.fy))
-    else:
-        first = orbit_cameras(means, 1, width, height, up_axis=up_axis)[0]
-        up = np.eye(3)[up_axis]
-        fov_y = math.degrees(2 * math.atan(0.5 * height / first.fy))
-    eye, forward = first.position, first.viewmat[2, :3]
-    depth = max(float((np.median(means, axis=0) - eye) @ forward), 0.1 * radius)
-    return {"eye": eye.tolist(), "target": (eye + depth * forward).tolist(), "up": up.tolist(),
-            "fov_y": fov_y, "width": width, "height": height, "radius": radius}
+    """The page's first camera, the overview of :func:`~.views.scene_views` (eye, target, up,
+    fov_y), with the frame size, the scene's radius (:func:`~.views.scene_radius`) and "views":
+    all the views the page steps through, the overview first, then the scene's cameras:
+    {"eye", "target", "up", "fov_y", "width", "height", "radius", "views"}."""
+    scene = renderer.scene
+    views = scene_views(scene.gaussians, scene.cameras, width, height, up_axis)
+    first = {key: views[0][key] for key in ("eye", "target", "up", "fov_y")}
+    return {**first, "width": width, "height": height, "radius": scene_radius(scene.gaussians.means),
+            "views": views}
 
 
 def _vector(params: dict, name: str) -> tuple[float, float, float]:

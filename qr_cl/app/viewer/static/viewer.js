@@ -3,9 +3,12 @@
 // (qr-cl on the CPU) and sent as a JPEG; the page only draws it, so it needs no WebGL.
 // While the camera moves, frames are requested at a scale that keeps the render near
 // scene.camera.target_ms; SETTLE_MS after the last move the full frame is requested.
-// Initial state from the URL: ?mode=rgb|pca|classes|relevancy&q=TEXT&sampler=S&k=K&w=W&h=H.
-// document.body.dataset holds frames (drawn), reduced (drawn below full size), the mode and full
-// ("1" at full size) of the last frame, and the last error.
+// The first view is the scene's overview; C / shift+C and the view buttons step through
+// scene.camera.views (the overview, then the scene's own cameras) and round again.
+// Initial state from the URL: ?mode=rgb|pca|classes|relevancy&q=TEXT&sampler=S&k=K&w=W&h=H&view=I.
+// document.body.dataset holds frames (drawn), reduced (drawn below full size), the mode, full
+// ("1" at full size) and view (the view's name, "" once the camera left it) of the last frame,
+// and the last error.
 
 const SETTLE_MS = 250;
 const MIN_SCALE = 0.25;
@@ -16,6 +19,8 @@ const params = new URLSearchParams(location.search);
 const state = { mode: "rgb", query: "", sampler: "quantile", k: 40 };
 let scene = null;
 let cam = null;
+let viewIndex = 0;
+let viewName = "";
 let inflight = false;
 let dirty = false;
 let lastMove = -1e9;
@@ -75,8 +80,25 @@ function fly(key) {
   cam.target = add(cam.target, shift);
 }
 
+function selectView(index) {
+  const views = scene.camera.views;
+  viewIndex = ((index % views.length) + views.length) % views.length;
+  const view = views[viewIndex];
+  cam = { eye: view.eye, target: view.target, up: view.up, fov_y: view.fov_y };
+  viewName = view.name;
+  el("view-name").textContent = viewIndex === 0 ? view.name : `${view.name} (${viewIndex}/${views.length - 1})`;
+}
+
+function showView(index) {
+  selectView(index);
+  changed(false);
+}
+
 function changed(moving) {
-  if (moving) lastMove = performance.now();
+  if (moving) {
+    lastMove = performance.now();
+    viewName = "";
+  }
   dirty = true;
   request();
 }
@@ -96,6 +118,7 @@ function request() {
   const width = Math.max(8, Math.round(canvas.width * scale));
   const height = Math.max(8, Math.round(canvas.height * scale));
   const mode = state.mode;
+  const view = viewName;
   const query = new URLSearchParams({
     eye: cam.eye.join(","), target: cam.target.join(","), up: cam.up.join(","), fov_y: cam.fov_y,
     width, height, mode, query: state.query, sampler: state.sampler, k: state.k,
@@ -115,7 +138,8 @@ function request() {
     el("time").textContent = `${width}x${height} · render ${renderMs.toFixed(0)} ms · ` +
       `frame ${(performance.now() - started).toFixed(0)} ms`;
     el("status").textContent = "";
-    Object.assign(document.body.dataset, { frames, reduced, mode, full: scale === 1 ? "1" : "0", error: "" });
+    Object.assign(document.body.dataset, { frames, reduced, mode, view, full: scale === 1 ? "1" : "0",
+      error: "" });
   }).catch((err) => {
     el("status").textContent = err.message;
     document.body.dataset.error = err.message;
@@ -179,10 +203,18 @@ function bindControls() {
   }, { passive: false });
   window.addEventListener("keydown", (e) => {
     const key = e.key.toLowerCase();
-    if (["INPUT", "SELECT"].includes(e.target.tagName) || !"wasdqe".includes(key) || key.length !== 1) return;
-    fly(key);
-    changed(true);
+    if (["INPUT", "SELECT"].includes(e.target.tagName) || key.length !== 1 || e.ctrlKey || e.metaKey || e.altKey) {
+      return;
+    }
+    if (key === "c") {
+      showView(viewIndex + (e.shiftKey ? -1 : 1));
+    } else if ("wasdqe".includes(key)) {
+      fly(key);
+      changed(true);
+    }
   });
+  el("next-view").addEventListener("click", () => showView(viewIndex + 1));
+  el("prev-view").addEventListener("click", () => showView(viewIndex - 1));
   el("query").addEventListener("keydown", (e) => {
     if (e.key !== "Enter") return;
     state.query = el("query").value.trim();
@@ -195,7 +227,6 @@ function bindControls() {
 
 async function start() {
   scene = await (await fetch("/api/scene")).json();
-  cam = { eye: scene.camera.eye, target: scene.camera.target, up: scene.camera.up, fov_y: scene.camera.fov_y };
   canvas.width = parseInt(params.get("w") || scene.camera.width, 10);
   canvas.height = parseInt(params.get("h") || scene.camera.height, 10);
   state.sampler = params.get("sampler") || scene.sampler;
@@ -208,6 +239,7 @@ async function start() {
   el("k").value = state.k;
   el("query").value = state.query;
   bindControls();
+  selectView(parseInt(params.get("view") || "0", 10) || 0);
   setMode(params.get("mode") || "rgb");
 }
 
