@@ -28,22 +28,22 @@ from pathlib import Path
 
 import numpy as np
 
-from .evaluation.labels import ground_truth, reached_gaussians
-from .evaluation.scoring import evaluate_features, markdown_table
-from .evaluation.visuals import PANEL_SIZE, write_comparison, write_visuals
-from .experiments.claims import Stat
-from .experiments.table2 import COLUMNS, ROWS_TEXT, table2_lines
-from .process import cap_kernel_threads, keep_freed_memory, release_freed_memory, torch_threads
-from .registration.register import DRSPLAT_K, register, scene_views
-from .scenes.folders import load_scene_folder
-from .scenes.room_config import FEATURE_FIELDS, STYLES, SyntheticConfig
-from .scenes.synthetic import room_folder
-from .scenes.views import room_overview_cameras
-from .timing import Stopwatch
-from .training.free_features import fit_free_features
-from .training.config import TrainConfig
-from .training.network import network_features
-from .training.trainer import train
+from ..evaluation.labels import ground_truth, reached_gaussians
+from ..evaluation.scoring import evaluate_features, markdown_table
+from ..evaluation.visuals import PANEL_SIZE, write_comparison, write_visuals
+from ..experiments.claims import Stat
+from ..experiments.table2 import COLUMNS, ROWS_TEXT, table2_lines
+from ..process import cap_kernel_threads, keep_freed_memory, release_freed_memory, torch_threads
+from ..registration.register import DRSPLAT_K, register, scene_views
+from ..scenes.folders import load_scene_folder
+from ..scenes.room_config import FEATURE_FIELDS, STYLES, SyntheticConfig
+from ..scenes.synthetic import room_folder
+from ..scenes.views import room_overview_cameras
+from ..timing import Stopwatch
+from ..training.config import TrainConfig
+from ..training.free_features import fit_free_features
+from ..training.network import network_features
+from ..training.trainer import train
 
 #: Gaussians per room of each synthetic style (the default of ``--gaussians``).
 ROOM_GAUSSIANS = {"3dgs": 60000, "flat": 24000}

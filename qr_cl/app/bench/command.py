@@ -16,16 +16,16 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from ..render.selfcheck import checked_runtime
-from .bench import roofline
-from .bench.complexity import complexity_fits, complexity_jobs
-from .bench.implementations import run_all
-from .bench.jobs import sweep_jobs, sweep_sizes
-from .bench.plots import write_plots
-from .bench.report import REPORT_VERSION, compare, report_meta, summary_markdown
-from .bench.scale import SCALES, run_scale
-from .bench.sweep import Sweep
-from .timing import Stopwatch
+from ...render.selfcheck import checked_runtime
+from ..timing import Stopwatch
+from . import roofline
+from .complexity import complexity_fits, complexity_jobs
+from .implementations import run_all
+from .jobs import sweep_jobs, sweep_sizes
+from .plots import write_plots
+from .report import REPORT_VERSION, compare, report_meta, summary_markdown
+from .scale import SCALES, run_scale
+from .sweep import Sweep
 
 
 def run_sweep(mode: str, out: Path, data: Path | None = None) -> dict:

@@ -1,6 +1,6 @@
 """``qr-cl train``: GS-Net trained through a feature renderer with the contrastive loss (paper App. D).
 
-The command, also run as ``python -m qr_cl.app.train`` (e.g. under torchrun): one process, or one
+The command, also run as ``python -m qr_cl.app.training.command`` (e.g. under torchrun): one process, or one
 rank of a torchrun job when ``WORLD_SIZE`` > 1. The training itself: :mod:`qr_cl.app.training.trainer`.
 """
 from __future__ import annotations
@@ -12,15 +12,15 @@ from pathlib import Path
 
 import torch.distributed as dist
 
-from ..runtime import SAMPLERS
-from .process import cap_kernel_threads, keep_freed_memory, torch_threads
-from .training.config import TrainConfig
-from .training.network import NETS
-from .training.trainer import train
+from ...runtime import SAMPLERS
+from ..process import cap_kernel_threads, keep_freed_memory, torch_threads
+from .config import TrainConfig
+from .network import NETS
+from .trainer import train
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Options of ``qr-cl train`` / ``python -m qr_cl.app.train``."""
+    """Options of ``qr-cl train`` / ``python -m qr_cl.app.training.command``."""
     d = TrainConfig(scenes=["-"], out="-")
     parser.add_argument("scenes", nargs="+", help="scene folders (point_cloud.ply, cameras.json, language_features/)")
     parser.add_argument("--out", required=True, help="output folder (checkpoint.pt, train_log.json)")
@@ -92,8 +92,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of ``python -m qr_cl.app.train`` (e.g. under torchrun)."""
-    parser = argparse.ArgumentParser(prog="python -m qr_cl.app.train", description=__doc__.split("\n")[0])
+    """Entry point of ``python -m qr_cl.app.training.command`` (e.g. under torchrun)."""
+    parser = argparse.ArgumentParser(prog="python -m qr_cl.app.training.command", description=__doc__.split("\n")[0])
     add_arguments(parser)
     return run(parser.parse_args(argv))
 

@@ -16,12 +16,12 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from .evaluation.labels import ground_truth
-from .evaluation.scoring import evaluate_features, markdown_table
-from .evaluation.visuals import frame_cameras, write_visuals
-from .process import torch_threads
-from .scenes.folders import load_scene_folder
-from .training.network import load_checkpoint, network_features
+from ..process import torch_threads
+from ..scenes.folders import load_scene_folder
+from ..training.network import load_checkpoint, network_features
+from .labels import ground_truth
+from .scoring import evaluate_features, markdown_table
+from .visuals import frame_cameras, write_visuals
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
