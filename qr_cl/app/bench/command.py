@@ -1,10 +1,14 @@
 """``qr-cl bench``: per-stage kernel sweeps, baselines, roofline, complexity fit; JSON + markdown + plots.
 
+Its subcommands: ``sweep`` (the report), ``compare A.json B.json`` (time ratios of two reports),
+``scale [N ...]`` (cost and memory against the number of Gaussians) and ``implementations`` (the
+sweep on every OpenCL implementation installed, side by side).
+
 Every number is a wall time measured in this run with the OpenCL queue finished inside the timed
 call, after a warm-up call; ratios compare timings from the same run. The sweep is a list of jobs
 (:mod:`qr_cl.app.bench.jobs`) run by :class:`qr_cl.app.bench.sweep.Sweep`; the report format
 (:data:`qr_cl.app.bench.report.REPORT_VERSION`) is stable so that two reports, e.g. from two
-devices, can be compared with ``qr-cl bench --compare A.json B.json``.
+devices, can be compared with ``qr-cl bench compare A.json B.json``.
 """
 from __future__ import annotations
 
@@ -17,6 +21,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from ...render.selfcheck import checked_runtime
+from ..arguments import positive_int
 from ..timing import Stopwatch
 from . import roofline
 from .complexity import complexity_fits, complexity_jobs
@@ -53,49 +58,71 @@ def run_sweep(mode: str, out: Path, data: Path | None = None) -> dict:
     return report
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Options of ``qr-cl bench``."""
-    parser.add_argument("--device", help="OpenCL device (as QR_CL_DEVICE: cpu, gpu, <platform>:<index>)")
-    parser.add_argument("--quick", action="store_true", help="the small sweep (under 3 minutes on 2 cores)")
-    parser.add_argument("--smoke", action="store_true", help="a seconds-long run on tiny inputs (tests)")
-    parser.add_argument("--out", default="qr-cl-bench", help="report folder (default ./qr-cl-bench)")
+def _mode_options(parser: argparse.ArgumentParser) -> None:
+    """The sweep's size (``--quick``, ``--smoke``; the full sweep without either) and ``--data``."""
+    size = parser.add_mutually_exclusive_group()
+    size.add_argument("--quick", action="store_true", help="the small sweep (under 3 minutes on 2 cores)")
+    size.add_argument("--smoke", action="store_true", help="a seconds-long run on tiny inputs (tests)")
     parser.add_argument("--data", default=os.environ.get("QR_CL_DATA"),
                         help="folder with the real scenes (wakufactory-fox/fox.ply, v3dg-donut/"
                              "donut_fused.ply; default $QR_CL_DATA): timed beside the synthetic ones")
-    parser.add_argument("--compare", nargs=2, metavar=("A.json", "B.json"),
-                        help="print B/A time ratios of two reports instead of measuring")
-    parser.add_argument("--scale", type=int, nargs="*", metavar="N",
-                        help="instead of the sweep: per-stage time and peak memory against the number of Gaussians "
-                             f"(dense room, 640x480, Q-Render K=40, C=512; default N: {' '.join(map(str, SCALES))})")
-    parser.add_argument("--table-dtype", choices=("float32", "float16"), default="float32",
-                        help="the feature tables' dtype of --scale (default float32)")
-    parser.add_argument("--implementations", action="store_true",
-                        help="run the sweep on PoCL and on every implementation tests/drivers/install.sh "
-                             "installed, one after the other, and write implementations.md side by side")
+
+
+def _device_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--device", help="OpenCL device (as QR_CL_DEVICE: cpu, gpu, <platform>:<index>)")
+
+
+def _out_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--out", default="qr-cl-bench", help="report folder (default ./qr-cl-bench)")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``qr-cl bench`` and its subcommands."""
+    sub = parser.add_subparsers(dest="bench", required=True, metavar="{sweep,compare,scale,implementations}")
+    sweep = sub.add_parser("sweep", help="the per-stage sweep: report.json, summary.md and plots")
+    _mode_options(sweep)
+    _device_option(sweep)
+    _out_option(sweep)
+    comparison = sub.add_parser("compare", help="print B/A time ratios of two sweep reports")
+    comparison.add_argument("reports", nargs=2, metavar=("A.json", "B.json"))
+    scale = sub.add_parser("scale", help="per-stage time and peak memory against the number of Gaussians")
+    scale.add_argument("n", type=positive_int, nargs="*", metavar="N",
+                       help="numbers of Gaussians (dense room, 640x480, Q-Render K=40, C=512; "
+                            f"default {' '.join(map(str, SCALES))})")
+    scale.add_argument("--table-dtype", choices=("float32", "float16"), default="float32",
+                       help="the feature tables' dtype (default float32)")
+    _device_option(scale)
+    _out_option(scale)
+    implementations = sub.add_parser(
+        "implementations", help="the sweep on PoCL and on every implementation tests/drivers/install.sh "
+                                "installed, one after the other: implementations.md side by side")
+    _mode_options(implementations)
+    _out_option(implementations)
 
 
 def run(args: argparse.Namespace) -> int:
-    """``qr-cl bench``: measure and write the report, or compare two reports."""
-    if args.compare:
-        print(compare(*args.compare))
+    """``qr-cl bench SUBCOMMAND``: measure and write a report, or compare two reports."""
+    if args.bench == "compare":
+        print(compare(*args.reports))
         return 0
-    if args.device:
+    if getattr(args, "device", None):
         os.environ["QR_CL_DEVICE"] = args.device
     out = Path(args.out)
-    if args.data and not Path(args.data).is_dir():
-        raise FileNotFoundError(2, "no such folder (--data)", args.data)
     watch = Stopwatch()
-    mode = "smoke" if args.smoke else "quick" if args.quick else "full"
-    if args.scale is not None:
-        run_scale(out, tuple(args.scale) or SCALES, table_dtype=args.table_dtype)
+    if args.bench == "scale":
+        run_scale(out, tuple(args.n) or SCALES, table_dtype=args.table_dtype)
         print((out / "scale.md").read_text())
         print(f"finished in {watch.seconds:.0f} s. Report: {out.resolve()} (scale.json, scale.md, scale.png)")
         return 0
-    if args.implementations:
-        print(run_all(mode, out, Path(args.data) if args.data else None))
+    if args.data and not Path(args.data).is_dir():
+        raise FileNotFoundError(2, "no such folder (--data)", args.data)
+    mode = "smoke" if args.smoke else "quick" if args.quick else "full"
+    data = Path(args.data) if args.data else None
+    if args.bench == "implementations":
+        print(run_all(mode, out, data))
         print(f"finished in {watch.seconds:.0f} s. Report: {(out / 'implementations.md').resolve()}")
         return 0
-    run_sweep(mode, out, Path(args.data) if args.data else None)
+    run_sweep(mode, out, data)
     print((out / "summary.md").read_text())
     print(f"bench finished in {watch.seconds:.0f} s. Report: {out.resolve()} "
           "(report.json, summary.md, time_vs_k.png, time_vs_c.png, roofline.png, complexity.png)")
