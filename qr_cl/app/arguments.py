@@ -8,7 +8,6 @@ errors are one line (``qr-cl render: error: argument --width: expected a positiv
 from __future__ import annotations
 
 import argparse
-import sys
 from typing import NoReturn
 
 
@@ -62,14 +61,6 @@ def positive_float(text: str) -> float:
     return value
 
 
-def nonnegative_float(text: str) -> float:
-    """A finite number >= 0."""
-    value = _number(text, "a number >= 0")
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text}")
-    return value
-
-
 def port_number(text: str) -> int:
     """A TCP port, 0 to 65535 (0: any free one)."""
     value = _integer(text, "a port number (0 to 65535)")
@@ -81,8 +72,3 @@ def port_number(text: str) -> int:
 #: ``choices`` of an up-axis option: the world axis that points up (0 = x, 1 = y, 2 = z).
 AXES = (0, 1, 2)
 
-
-def fail(prog: str, message: str) -> NoReturn:
-    """Exit with the one-line error of :class:`OneLineParser` for a check made after parsing."""
-    sys.stderr.write(f"{prog}: error: {message} (see {prog} --help)\n")
-    raise SystemExit(2)

@@ -19,6 +19,7 @@ from ..runtime import (BufferLimitError, HostMemoryError, NoDeviceError, choose_
                        trial_run)
 from ..runtime.device import implementation, self_check_enabled
 from ..scene import SceneFormatError, load_cameras, load_layout_instance, load_scene, orbit_cameras
+from .arguments import AXES, OneLineParser, nonnegative_int, positive_int
 from .training.network import CheckpointError
 from .timing import Stopwatch
 
@@ -104,18 +105,18 @@ def _cmd_render(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="qr-cl", description=__doc__)
+    parser = OneLineParser(prog="qr-cl", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
     sub.add_parser("devices", help="list OpenCL devices and mark the one qr-cl uses")
     r = sub.add_parser("render", help="render a 3DGS scene (.ply or .splat) to PNGs")
     r.add_argument("scene", help="INRIA 3DGS .ply or antimatter15 .splat")
     views = r.add_mutually_exclusive_group()
     views.add_argument("--cameras", help="3DGS cameras.json, V3DG layout or NeRF transforms.json")
-    views.add_argument("--orbit", type=int, default=8, help="number of orbit cameras (default 8)")
-    r.add_argument("--width", type=int, help="image width in px (orbit default 640; rescales --cameras)")
-    r.add_argument("--height", type=int, help="image height in px (orbit default 480)")
-    r.add_argument("--up-axis", type=int, default=2, help="world up axis for orbits (2 = z, 1 = y)")
-    r.add_argument("--sh-degree", type=int, help="use at most this SH degree (default: the file's)")
+    views.add_argument("--orbit", type=positive_int, default=8, help="number of orbit cameras (default 8)")
+    r.add_argument("--width", type=positive_int, help="image width in px (orbit default 640; rescales --cameras)")
+    r.add_argument("--height", type=positive_int, help="image height in px (orbit default 480)")
+    r.add_argument("--up-axis", type=int, choices=AXES, default=2, help="world up axis for orbits (2 = z, 1 = y)")
+    r.add_argument("--sh-degree", type=nonnegative_int, help="use at most this SH degree (default: the file's)")
     r.add_argument("--out", required=True, help="output folder")
     for name, (package, text) in DELEGATED.items():
         _command(package).add_arguments(sub.add_parser(name, help=text))

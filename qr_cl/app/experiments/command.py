@@ -45,6 +45,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from ...runtime import runtime
+from ..arguments import nonnegative_int
 from ..evaluation.labels import ground_truth, reached_gaussians
 from ..process import cap_kernel_threads, keep_freed_memory, release_freed_memory, torch_threads
 from ..scenes.folders import load_scene_folder
@@ -141,7 +142,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", default=os.environ.get("QR_CL_DATA"),
                         help="folder with the real scenes (wakufactory-fox/fox.ply, v3dg-donut/donut_fused.ply; "
                              "default $QR_CL_DATA): compared with the synthetic rooms and used for RGB fidelity")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=nonnegative_int, default=0)
 
 
 def run(args: argparse.Namespace) -> int:
