@@ -4,27 +4,26 @@ The 300k-Gaussian dense room (:func:`qr_cl.app.scenes.procedural.dense_room`), 6
 float32 features, Q-Render K=40 and K=10, at the stage level: forward = the selection kernel
 plus the blend (``select`` then ``blend_forward``), backward = the feature gradient of the whole
 image (``blend_backward``: the deterministic scatter on CPU shapes). The issue's target is
-backward <= 1.5x forward. With ``--base PYTHON`` the same measurement runs first under another
-install (e.g. the previous release in its own venv), in a fresh process per round::
+backward <= 1.5x forward. With ``--base PYTHON_OR_CHECKOUT`` (see bench/ab.py) the same
+measurement runs first under another install (e.g. the previous release), each run in a fresh
+process::
 
-    python bench/backward_ratio.py --base <venv>/bin/python --rounds 3
+    python bench/backward_ratio.py --base <old-checkout> --rounds 3
 
 Prints one table: minimum ms over rounds of each part and the ratio backward / forward.
 """
 from __future__ import annotations
 
-import argparse
-import json
-import subprocess
-import sys
 import time
+
+from ab import ab_arguments, ab_parse, ab_rounds, installs
 
 WIDTH, HEIGHT, CHANNELS, DENSE_N = 640, 480, 512, 300_000
 KS = (40, 10)
 
 
-def child(calls: int) -> None:
-    """Measure in this process (the install it imports) and print a JSON line {K: {part: [s...]}}."""
+def measure_install(args) -> dict:
+    """{K: {part: [s...]}} of ``args.calls`` timed calls, in this process (the install it imports)."""
     import numpy as np
     import pyopencl.array as cla
 
@@ -53,7 +52,7 @@ def child(calls: int) -> None:
     out = {}
     for k in KS:
         parts = {"select": [], "blend": [], "backward": []}
-        for call in range(calls + 1):                       # the first call warms up
+        for call in range(args.calls + 1):                       # the first call warms up
             holder = {}
             t_sel = timed(lambda: holder.setdefault("sel", select(plan, "quantile", k)))
             sel = holder["sel"]
@@ -63,34 +62,22 @@ def child(calls: int) -> None:
                 for name, t in zip(parts, (t_sel, t_blend, t_back)):
                     parts[name].append(t)
         out[k] = parts
-    print(json.dumps(out))
-
-
-def run(python: str, calls: int) -> dict:
-    proc = subprocess.run([python, __file__, "--child", str(calls)], capture_output=True, text=True, check=True)
-    return {int(k): v for k, v in json.loads(proc.stdout.strip().splitlines()[-1]).items()}
+    return out
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--base", help="python of another install, measured first in each round")
-    parser.add_argument("--rounds", type=int, default=3)
-    parser.add_argument("--calls", type=int, default=3, help="timed calls per round and K")
-    parser.add_argument("--child", type=int, help=argparse.SUPPRESS)
-    args = parser.parse_args()
-    if args.child is not None:
-        child(args.child)
+    args = ab_parse(ab_arguments(__doc__.splitlines()[0], rounds=3, calls=3, base_required=False,
+                                 calls_help="timed calls per run and K"), measure_install)
+    if args is None:
         return
-    builds = {"base": args.base, "this": sys.executable} if args.base else {"this": sys.executable}
-    best: dict = {}
-    for _ in range(args.rounds):
-        for name, python in builds.items():
-            for k, parts in run(python, args.calls).items():
-                for part, times in parts.items():
-                    best[name, k, part] = min(best.get((name, k, part), float("inf")), min(times))
+    with installs(args.base) as runs_of:
+        runs = ab_rounds(__file__, runs_of, args.rounds, args.calls, lambda run: ", ".join(
+            f"K={k} backward {min(parts['backward']) * 1e3:.0f} ms" for k, parts in run.items()))
+    best = {(name, int(k), part): min(min(run[k][part]) for run in label_runs)      # JSON keys: str(K)
+            for name, label_runs in runs.items() for k in label_runs[0] for part in label_runs[0][k]}
     print("| build | K | select ms | blend ms | forward ms | backward ms | backward / forward |")
     print("| --- | ---: | ---: | ---: | ---: | ---: | ---: |")
-    for name in builds:
+    for name in runs:
         for k in KS:
             sel, blend, back = (1e3 * best[name, k, p] for p in ("select", "blend", "backward"))
             print(f"| {name} | {k} | {sel:.1f} | {blend:.1f} | {sel + blend:.1f} | {back:.1f} | {back / (sel + blend):.2f} |")

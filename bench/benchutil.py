@@ -3,11 +3,7 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
-import json
-import subprocess
-import sys
 from pathlib import Path
-from typing import Callable
 
 
 def run(benchmark, fn, full: bool, rounds: int = 5):
@@ -16,17 +12,19 @@ def run(benchmark, fn, full: bool, rounds: int = 5):
                               warmup_rounds=1 if full else 0)
 
 
-def _checkout_timing():
-    """qr_cl/app/timing.py of this checkout, loaded from its file (it needs the standard library
-    only): scripts that measure another install of qr-cl time both with the same helper."""
+def checkout_module(name: str):
+    """qr_cl/app/<name>.py of this checkout, loaded from its file (it must need the standard
+    library only): a script's worker that runs under another install of qr-cl (see ab.py) uses
+    this checkout's timing and argument checks, not that install's."""
     spec = importlib.util.spec_from_file_location(
-        "qr_cl_checkout_timing", Path(__file__).resolve().parents[1] / "qr_cl" / "app" / "timing.py")
+        f"qr_cl_checkout_{name}", Path(__file__).resolve().parents[1] / "qr_cl" / "app" / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
 
 
-timing = _checkout_timing()
+timing = checkout_module("timing")
+arguments = checkout_module("arguments")
 
 
 def room_parser(doc: str) -> argparse.ArgumentParser:
@@ -55,49 +53,6 @@ def fox_and_dense_room(data: Path | None, width: int, height: int, dense_n: int)
         scenes["fox"] = (g, qr_cl.orbit_cameras(g.means, 8, width, height)[1])
     scenes[f"dense-room-{dense_n // 1000}k"] = dense_room(dense_n, width=width, height=height)
     return scenes
-
-
-def ab_arguments(description: str, rounds: int, calls: int) -> argparse.ArgumentParser:
-    """The options of a script timing this checkout against another install: ``--base PYTHON``,
-    ``--rounds``, ``--calls``, and the hidden ``--worker FILE`` under which it measures the
-    install it runs in (see :func:`ab_rounds`)."""
-    ap = argparse.ArgumentParser(description=description)
-    ap.add_argument("--base", metavar="PYTHON", help="the interpreter of the other install")
-    ap.add_argument("--rounds", type=int, default=rounds, help="runs of each install, alternating")
-    ap.add_argument("--calls", type=int, default=calls, help="timed calls per run, after a warm-up")
-    ap.add_argument("--worker", type=Path, help=argparse.SUPPRESS)   # inputs file: measure, print JSON
-    return ap
-
-
-def ab_parse(ap: argparse.ArgumentParser, measure: Callable[[Path, int], dict]) -> argparse.Namespace | None:
-    """The parsed options of an :func:`ab_arguments` parser; under ``--worker`` it prints the JSON
-    of ``measure(worker file, calls)`` (the install this process imports) and returns None."""
-    args = ap.parse_args()
-    if args.worker:
-        print(json.dumps(measure(args.worker, args.calls)))
-        return None
-    if not args.base:
-        ap.error("--base PYTHON is required")
-    return args
-
-
-def ab_rounds(script: str, base: str, inputs: Path, rounds: int, calls: int,
-              describe: Callable[[dict], str]) -> dict[str, list[dict]]:
-    """{"base": [...], "this": [...]}: the JSON that ``script --worker inputs --calls calls``
-    prints last, run ``rounds`` times under ``base`` and this interpreter alternately, each in a
-    fresh process in ``inputs``' folder (not the checkout: ``python script`` imports its install,
-    not this tree). Prints each run as ``describe`` words it; exits with the tail of a failed
-    run's stderr."""
-    runs: dict[str, list[dict]] = {"base": [], "this": []}
-    for r in range(rounds):
-        for label, python in (("base", base), ("this", sys.executable)):
-            cmd = [python, script, "--worker", str(inputs), "--calls", str(calls)]
-            proc = subprocess.run(cmd, capture_output=True, text=True, cwd=inputs.parent)
-            if proc.returncode:
-                sys.exit(f"{label} run failed ({' '.join(cmd)}):\n{proc.stderr[-3000:]}")
-            runs[label].append(json.loads(proc.stdout.strip().splitlines()[-1]))
-            print(f"round {r + 1} {label}: {describe(runs[label][-1])}", flush=True)
-    return runs
 
 
 def print_table(table: str, out: Path | None) -> None:

@@ -1,4 +1,4 @@
-"""The resident memory of ``qr-cl demo`` over its run, for one install or several one after another.
+"""The resident memory of ``qr-cl demo`` over its run, for this checkout or another install and this one.
 
 Each install runs the demo in a fresh process (its scenes come from the shared cache, built once
 by whichever runs first), its resident memory (``VmRSS``) sampled every ``--every`` seconds,
@@ -6,8 +6,7 @@ and its peak read from the kernel when it ends (``wait4``'s ``ru_maxrss``, which
 miss). Writes ``demo_memory.md`` (wall time and peak per install) and ``demo_memory.png`` (memory
 against time) into ``--out``::
 
-    python bench/demo_memory.py --python before=<venv of the previous release>/bin/python \\
-        --python this=python --out REPORT_FOLDER
+    python bench/demo_memory.py --base PYTHON_OR_CHECKOUT --out REPORT_FOLDER   # --base: bench/ab.py
 
 Options this script does not know are passed to ``qr-cl demo`` (e.g. ``--steps 60``).
 """
@@ -20,7 +19,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from benchutil import print_table
+from ab import Install, add_base_option, installs
+from benchutil import arguments, print_table
 from qr_cl.app.images import plt  # pyplot on the file-only Agg backend
 
 
@@ -33,13 +33,13 @@ def resident_mb(pid: int) -> float | None:
     return int(status.split("VmRSS:")[1].split()[0]) / 1024 if "VmRSS:" in status else None
 
 
-def run_demo(python: str, every: float, extra: list[str]) -> tuple[float, float, list[tuple[float, float]]]:
-    """(wall s, peak MB, [(s, MB)] samples) of ``qr-cl demo`` under ``python``; the peak is the
+def run_demo(install: Install, every: float, extra: list[str]) -> tuple[float, float, list[tuple[float, float]]]:
+    """(wall s, peak MB, [(s, MB)] samples) of ``qr-cl demo`` in ``install``; the peak is the
     kernel's for that process (``wait4``), not the samples' largest."""
     with tempfile.TemporaryDirectory() as out, open(Path(out) / "stderr.txt", "w+") as stderr:
         start = time.perf_counter()
-        proc = subprocess.Popen([python, "-m", "qr_cl.app.cli", "demo", "--out", out, *extra],
-                                stdout=subprocess.DEVNULL, stderr=stderr, cwd=out)
+        proc = install.popen(["-m", "qr_cl.app.cli", "demo", "--out", out, *extra],
+                             stdout=subprocess.DEVNULL, stderr=stderr, cwd=out)
         samples = []
         while True:
             pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
@@ -53,29 +53,29 @@ def run_demo(python: str, every: float, extra: list[str]) -> tuple[float, float,
         proc.returncode = os.waitstatus_to_exitcode(status)
         if proc.returncode:
             stderr.seek(0)
-            raise SystemExit(f"{python} -m qr_cl.app.cli demo failed (rc {proc.returncode}):\n{stderr.read()[-4000:]}")
+            raise SystemExit(f"{install.label}: qr-cl demo failed (rc {proc.returncode}):\n{stderr.read()[-4000:]}")
     return wall, usage.ru_maxrss / 1024, samples
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--python", action="append", metavar="LABEL=PYTHON",
-                        help="an install to measure (repeatable; default this=<this interpreter>)")
-    parser.add_argument("--every", type=float, default=1.0, help="seconds between samples (default 1)")
+    add_base_option(parser, required=False)
+    parser.add_argument("--every", type=arguments.positive_float, default=1.0,
+                        help="seconds between samples (default 1)")
     parser.add_argument("--out", type=Path, required=True, help="folder for demo_memory.md and demo_memory.png")
     args, extra = parser.parse_known_args()
-    installs = [p.split("=", 1) for p in (args.python or ["this=python"])]
-    if any(len(p) != 2 for p in installs):
-        parser.error("--python takes LABEL=PYTHON")
     args.out.mkdir(parents=True, exist_ok=True)
     lines = [f"`qr-cl demo {' '.join(extra)}`, resident memory sampled every {args.every:g} s, "
              f"{os.cpu_count()} CPUs", "", "| install | wall s | peak GB |", "| --- | ---: | ---: |"]
     fig, ax = plt.subplots(figsize=(7, 4))
-    for label, python in installs:
-        wall, peak, samples = run_demo(python, args.every, extra)
-        print(f"{label}: {wall:.0f} s, peak {peak / 1024:.2f} GB", flush=True)
-        lines.append(f"| {label} | {wall:.0f} | {peak / 1024:.2f} |")
-        ax.plot([t for t, _ in samples], [mb / 1024 for _, mb in samples], label=f"{label} (peak {peak / 1024:.2f} GB)")
+    with installs(args.base) as runs_of:
+        for install in runs_of:
+            wall, peak, samples = run_demo(install, args.every, extra)
+            label = install.label
+            print(f"{label}: {wall:.0f} s, peak {peak / 1024:.2f} GB", flush=True)
+            lines.append(f"| {label} | {wall:.0f} | {peak / 1024:.2f} |")
+            ax.plot([t for t, _ in samples], [mb / 1024 for _, mb in samples],
+                    label=f"{label} (peak {peak / 1024:.2f} GB)")
     ax.set(xlabel="s", ylabel="resident GB", title="qr-cl demo: resident memory")
     ax.set_ylim(bottom=0)
     ax.legend(fontsize=8, loc="lower right")

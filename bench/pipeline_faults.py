@@ -12,20 +12,18 @@ Runs against whichever ``qr_cl`` the interpreter imports (this checkout, or an o
 release: only ``qr_cl.rasterize``, ``qr_cl.orbit_cameras`` and the procedural scene are used)::
 
     python bench/pipeline_faults.py                       # both paths, this checkout
-    perf stat -e page-faults,task-clock python bench/pipeline_faults.py --what render --warm 5
-    python bench/pipeline_faults.py --compare <other-venv>/bin/python --rounds 3
+    perf stat -e page-faults,task-clock python bench/pipeline_faults.py --what render --calls 5
+    python bench/pipeline_faults.py --base PYTHON_OR_CHECKOUT --rounds 3
 
-``--compare PY`` runs the script under ``PY`` and under this interpreter alternately, ``--rounds``
-times each (back to back), and prints the per-warm-call minima of both and their ratio.
+``--base`` (see bench/ab.py) runs the measurement under the other install and this checkout
+alternately, ``--rounds`` times each (back to back), and prints the per-warm-call minima of both
+and their ratio.
 """
 from __future__ import annotations
 
-import argparse
-import json
 import statistics
-import subprocess
-import sys
 
+from ab import ab_arguments, ab_parse, ab_rounds, installs
 from benchutil import timing
 
 WIDTH, HEIGHT, N_GAUSSIANS, CHANNELS, K = 640, 480, 50_000, 512, 40
@@ -95,18 +93,18 @@ def run(what: str, warm: int) -> dict:
     return out
 
 
-def compare(other: str, rounds: int, what: str, warm: int) -> None:
-    """Alternate runs of ``other`` and this interpreter; print minima and ratios."""
-    cmd = [__file__, "--what", what, "--warm", str(warm), "--json"]
-    results = {"base": [], "this": []}
-    for r in range(rounds):
-        for name, py in (("base", other), ("this", sys.executable)):
-            proc = subprocess.run([py, *cmd], capture_output=True, text=True, check=True)
-            results[name].append(json.loads(proc.stdout.strip().splitlines()[-1]))
-            print(f"round {r + 1} {name}: " + ", ".join(
-                f"{k} {v['warm_min_s'] * 1e3:.0f} ms {v['warm_faults_per_call']:.0f} faults"
-                for k, v in results[name][-1].items()), flush=True)
-    print(f"\nper warm call, min over {rounds} rounds x {warm} warm calls (base = {other}):")
+def measure_install(args) -> dict:
+    """:func:`run` of ``args.what`` with ``args.calls`` warm calls (the worker of an A/B run)."""
+    return run(args.what, args.calls)
+
+
+def compare(args) -> None:
+    """Alternate runs of the ``--base`` install and this checkout; print minima and ratios."""
+    with installs(args.base) as runs_of:
+        results = ab_rounds(__file__, runs_of, args.rounds, args.calls, lambda run: ", ".join(
+            f"{k} {v['warm_min_s'] * 1e3:.0f} ms {v['warm_faults_per_call']:.0f} faults" for k, v in run.items()),
+            worker_args=("--what", args.what))
+    print(f"\nper warm call, min over {args.rounds} rounds x {args.calls} warm calls (base = {args.base}):")
     print("| path | base ms | this ms | this / base | base faults | this faults |")
     print("| --- | --- | --- | --- | --- | --- |")
     for path in results["this"][0]:
@@ -118,21 +116,16 @@ def compare(other: str, rounds: int, what: str, warm: int) -> None:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = ab_arguments(__doc__.splitlines()[0], rounds=3, calls=4, base_required=False,
+                      calls_help="warm calls after the cold one")
     ap.add_argument("--what", choices=["render", "train", "both"], default="both")
-    ap.add_argument("--warm", type=int, default=4, help="warm calls after the cold one")
-    ap.add_argument("--json", action="store_true", help="print one JSON line")
-    ap.add_argument("--compare", metavar="PYTHON", help="alternate with this interpreter (the base)")
-    ap.add_argument("--rounds", type=int, default=3, help="--compare: runs per interpreter")
-    args = ap.parse_args()
-    if args.compare:
-        compare(args.compare, args.rounds, args.what, args.warm)
+    args = ab_parse(ap, measure_install)
+    if args is None:
         return
-    result = run(args.what, args.warm)
-    if args.json:
-        print(json.dumps(result))
+    if args.base:
+        compare(args)
         return
-    for path, r in result.items():
+    for path, r in run(args.what, args.calls).items():
         print(f"{path}: cold {r['cold_s'] * 1e3:.0f} ms / {r['cold_faults']} faults; warm min "
               f"{r['warm_min_s'] * 1e3:.0f} ms, median {r['warm_median_s'] * 1e3:.0f} ms, "
               f"{r['warm_faults_per_call']:.0f} faults per call {r['warm_faults']}")

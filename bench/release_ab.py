@@ -15,9 +15,10 @@ The scenes and cameras are made once by this checkout and handed to both install
 both render the same Gaussians. Only public names are used (``qr_cl.rasterize``, and
 ``qr_cl.render_volume_fused`` or, in releases before it, ``sampler="volume_fused"``)::
 
-    python -m venv <venv> && <venv>/bin/pip install torch==2.13.0 <old-checkout>
-    python bench/release_ab.py --base <venv>/bin/python --data ../shared/data --rounds 2
+    python bench/release_ab.py --base <old-checkout> --data DATA --rounds 2
+    python bench/release_ab.py --base <venv of an earlier release>/bin/python --data DATA
 
+(``--base``: see bench/ab.py.)
 Each round runs the base, then this checkout, in fresh processes; the table gives the minimum
 over rounds and calls of each, the speed-up, and each build's fused V-Render over its Q-Render.
 """
@@ -29,7 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
-from benchutil import ab_arguments, ab_parse, ab_rounds, fox_and_dense_room, timing
+from ab import ab_arguments, ab_parse, ab_rounds, installs
+from benchutil import fox_and_dense_room, timing
 
 WIDTH, HEIGHT, CHANNELS, DENSE_N = 640, 480, 512, 300_000
 VIEWS, RAYS = 4, 2048
@@ -49,14 +51,15 @@ def make_scenes(data: Path | None, out: Path) -> list[str]:
     return list(scenes)
 
 
-def measure_install(scenes_file: Path, calls: int) -> dict:
-    """{scene: {path: {"min_s", "faults"}}} for the qr_cl this interpreter imports."""
+def measure_install(args) -> dict:
+    """{scene: {path: {"min_s", "faults"}}} for the qr_cl this interpreter imports: the scenes of
+    ``args.inputs``, ``args.calls`` timed calls of each path."""
     import torch
     import qr_cl
     torch.set_num_threads(1)
     fused = getattr(qr_cl, "render_volume_fused", None) or (
         lambda *a: qr_cl.rasterize(*a, sampler="volume_fused"))
-    arrays = np.load(scenes_file)
+    arrays, calls = np.load(args.inputs), args.calls
     names = sorted({k.split("/")[0] for k in arrays.files})
     rng = np.random.default_rng(0)
     results = {}
@@ -132,8 +135,10 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         scenes_file = Path(tmp) / "scenes.npz"
         print("scenes:", ", ".join(make_scenes(args.data, scenes_file)), flush=True)
-        runs = ab_rounds(__file__, args.base, scenes_file, args.rounds, args.calls, lambda run: "; ".join(
-            f"{s} " + " ".join(f"{p} {v['min_s'] * 1e3:.0f}" for p, v in paths.items()) for s, paths in run.items()))
+        with installs(args.base) as runs_of:
+            runs = ab_rounds(__file__, runs_of, args.rounds, args.calls, lambda run: "; ".join(
+                f"{s} " + " ".join(f"{p} {v['min_s'] * 1e3:.0f}" for p, v in paths.items()) for s, paths in run.items()),
+                inputs=scenes_file)
     print()
     print(table(runs["base"], runs["this"], args.base))
 

@@ -10,7 +10,7 @@ table (the padded host rows made by ``qr_cl.runtime.memory.device_rows``: where 
 channel groups copies each group's columns, and row parts would copy a part they cannot read in
 place)::
 
-    python bench/split_tables.py --base /path/to/other/python --rounds 3
+    python bench/split_tables.py --base PYTHON_OR_CHECKOUT --rounds 3     # --base: see bench/ab.py
 
 Prints a table and the ratio of the base's split call to this checkout's. Timings are the
 machine's of the moment; keep a report only with the machine named.
@@ -22,7 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from benchutil import ab_arguments, ab_parse, ab_rounds, timing
+from ab import ab_arguments, ab_parse, ab_rounds, installs
+from benchutil import timing
 
 WIDTH, HEIGHT, CHANNELS, DENSE_N, K = 320, 240, 512, 300_000, 40
 
@@ -34,14 +35,15 @@ def make_scene(out: Path) -> None:
     np.savez(out, means=g.means, quats=g.quats, scales=g.scales, opacities=g.opacities, viewmat=cam.viewmat, K=cam.K)
 
 
-def measure_install(scene_file: Path, calls: int) -> dict:
-    """{"whole_s", "split_s", "copied_bytes", "table_bytes"} for the qr_cl this interpreter imports."""
+def measure_install(args) -> dict:
+    """{"whole_s", "split_s", "copied_bytes", "table_bytes"} for the qr_cl this interpreter imports:
+    the scene of ``args.inputs``, ``args.calls`` timed calls of each."""
     import torch
 
     import qr_cl
     from qr_cl.runtime import Runtime, memory
     torch.set_num_threads(1)
-    a = np.load(scene_file)
+    a, calls = np.load(args.inputs), args.calls
     geo = [np.ascontiguousarray(a[k], np.float32) for k in ("means", "quats", "scales", "opacities")]
     table = torch.empty(len(geo[0]), CHANNELS).copy_(
         torch.from_numpy(np.random.default_rng(0).random((len(geo[0]), CHANNELS), dtype=np.float32)))
@@ -81,9 +83,10 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         scene_file = Path(tmp) / "scene.npz"
         make_scene(scene_file)
-        runs = ab_rounds(__file__, args.base, scene_file, args.rounds, args.calls, lambda run: (
-            f"whole {run['whole_s'] * 1e3:.0f} ms, split {run['split_s'] * 1e3:.0f} ms, "
-            f"copied {run['split_copied_bytes'] / 1e6:.0f} MB"))
+        with installs(args.base) as runs_of:
+            runs = ab_rounds(__file__, runs_of, args.rounds, args.calls, lambda run: (
+                f"whole {run['whole_s'] * 1e3:.0f} ms, split {run['split_s'] * 1e3:.0f} ms, "
+                f"copied {run['split_copied_bytes'] / 1e6:.0f} MB"), inputs=scene_file)
     best = {(label, key): min(r[key] for r in rs) for label, rs in runs.items() for key in ("whole_s", "split_s")}
     table_mb = runs["this"][0]["table_bytes"] / 1e6
     print(f"\nbase = {args.base}; dense room {DENSE_N // 1000}k, {WIDTH}x{HEIGHT}, C={CHANNELS} float32 "

@@ -13,7 +13,7 @@
    mask map of the dominant part is rendered from the capture, and every mask gets a simulated
    512-D "CLIP" feature (its part's random prototype plus noise), written in LangSplat's layout
    beside the fitted Gaussians.
-4. GS-Net is trained on the fitted Gaussians through Q-Render (``qr_cl.app.train``), and its
+4. GS-Net is trained on the fitted Gaussians through Q-Render (``qr_cl.app.training.command``), and its
    per-Gaussian features are scored by the part each Gaussian's feature is closest to, rendered
    into every view and compared with the capture's part masks (pixel accuracy), beside the
    accuracy of always answering the largest part.

@@ -1,4 +1,8 @@
-"""The ``qr-cl`` command line: devices and render here; demo, train, eval and bench delegated to their modules."""
+"""The ``qr-cl`` command line: devices and render here; every other command in its package's command.py.
+
+The delegated commands (:data:`DELEGATED`): demo, bench, train, eval, reproduce, register, query,
+view and features, each a module with ``add_arguments(parser)`` and ``run(args)``.
+"""
 from __future__ import annotations
 
 import argparse
@@ -15,20 +19,26 @@ from ..runtime import (BufferLimitError, HostMemoryError, NoDeviceError, choose_
                        trial_run)
 from ..runtime.device import implementation, self_check_enabled
 from ..scene import SceneFormatError, load_cameras, load_layout_instance, load_scene, orbit_cameras
+from .arguments import AXES, OneLineParser, nonnegative_int, positive_int
 from .training.network import CheckpointError
 from .timing import Stopwatch
 
 
-# Sub-commands implemented in their own modules, each with add_arguments(parser) and run(args).
+# Sub-commands implemented in their packages' command.py, each with add_arguments(parser) and run(args).
 DELEGATED = {"demo": ("demo", "the embedded default job (see README)"),
-             "bench": ("benchmark", "kernel benchmark sweeps: JSON, markdown summary and plots"),
-             "train": ("train", "train GS-Net through a feature renderer on scene folders"),
-             "eval": ("evaluate", "open-vocabulary 3D segmentation: mIoU/mAcc tables, images, PLYs"),
-             "reproduce": ("reproduce", "the paper's controlled experiments on 3DGS-like rooms: report and plots"),
-             "register": ("registration.command", "Dr.Splat's training-free registration of mask features onto Gaussians"),
-             "query": ("query.command", "where is some text in a scene: relevancy per Gaussian, heatmaps, PLYs"),
-             "view": ("viewer.command", "a web viewer on localhost rendering the scene on the CPU"),
-             "features": ("features.command", "LangSplat mask features of a scene's photos (SAM + CLIP, any torch device)")}
+             "bench": ("bench", "kernel benchmarks: sweep, compare, scale, implementations"),
+             "train": ("training", "train GS-Net through a feature renderer on scene folders"),
+             "eval": ("evaluation", "open-vocabulary 3D segmentation: mIoU/mAcc tables, images, PLYs"),
+             "reproduce": ("experiments", "the paper's controlled experiments on 3DGS-like rooms: report and plots"),
+             "register": ("registration", "Dr.Splat's training-free registration of mask features onto Gaussians"),
+             "query": ("query", "where is some text in a scene: relevancy per Gaussian, heatmaps, PLYs"),
+             "view": ("viewer", "a web viewer on localhost rendering the scene on the CPU"),
+             "features": ("features", "LangSplat mask features of a scene's photos (SAM + CLIP, any torch device)")}
+
+
+def _command(package: str):
+    """The command module of ``qr_cl.app.<package>``."""
+    return importlib.import_module(f"qr_cl.app.{package}.command")
 
 
 def _cmd_devices(args: argparse.Namespace) -> int:
@@ -95,21 +105,21 @@ def _cmd_render(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="qr-cl", description=__doc__)
+    parser = OneLineParser(prog="qr-cl", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
     sub.add_parser("devices", help="list OpenCL devices and mark the one qr-cl uses")
     r = sub.add_parser("render", help="render a 3DGS scene (.ply or .splat) to PNGs")
     r.add_argument("scene", help="INRIA 3DGS .ply or antimatter15 .splat")
     views = r.add_mutually_exclusive_group()
     views.add_argument("--cameras", help="3DGS cameras.json, V3DG layout or NeRF transforms.json")
-    views.add_argument("--orbit", type=int, default=8, help="number of orbit cameras (default 8)")
-    r.add_argument("--width", type=int, help="image width in px (orbit default 640; rescales --cameras)")
-    r.add_argument("--height", type=int, help="image height in px (orbit default 480)")
-    r.add_argument("--up-axis", type=int, default=2, help="world up axis for orbits (2 = z, 1 = y)")
-    r.add_argument("--sh-degree", type=int, help="use at most this SH degree (default: the file's)")
+    views.add_argument("--orbit", type=positive_int, default=8, help="number of orbit cameras (default 8)")
+    r.add_argument("--width", type=positive_int, help="image width in px (orbit default 640; rescales --cameras)")
+    r.add_argument("--height", type=positive_int, help="image height in px (orbit default 480)")
+    r.add_argument("--up-axis", type=int, choices=AXES, default=2, help="world up axis for orbits (2 = z, 1 = y)")
+    r.add_argument("--sh-degree", type=nonnegative_int, help="use at most this SH degree (default: the file's)")
     r.add_argument("--out", required=True, help="output folder")
-    for name, (module, text) in DELEGATED.items():
-        importlib.import_module(f"qr_cl.app.{module}").add_arguments(sub.add_parser(name, help=text))
+    for name, (package, text) in DELEGATED.items():
+        _command(package).add_arguments(sub.add_parser(name, help=text))
     return parser
 
 
@@ -117,8 +127,7 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``qr-cl`` console script."""
     args = build_parser().parse_args(argv)
     commands = {"devices": _cmd_devices, "render": _cmd_render}
-    commands.update({name: importlib.import_module(f"qr_cl.app.{module}").run
-                     for name, (module, _) in DELEGATED.items()})
+    commands.update({name: _command(package).run for name, (package, _) in DELEGATED.items()})
     with warnings.catch_warnings():
         warnings.simplefilter("always")
         warnings.formatwarning = lambda msg, cat, *a, **k: f"warning: {msg}\n"

@@ -11,7 +11,7 @@ from qr_cl.runtime import SAMPLERS
 @pytest.fixture(scope="module")
 def report_dir(tmp_path_factory):
     out = tmp_path_factory.mktemp("bench")
-    assert main(["bench", "--smoke", "--out", str(out)]) == 0
+    assert main(["bench", "sweep", "--smoke", "--out", str(out)]) == 0
     return out
 
 
@@ -54,7 +54,7 @@ def test_summary_and_plots(report_dir):
 
 def test_compare_two_reports(report_dir, capsys):
     path = str(report_dir / "report.json")
-    assert main(["bench", "--compare", path, path]) == 0
+    assert main(["bench", "compare", path, path]) == 0
     table = capsys.readouterr().out
     assert "| 1.00 |" in table and "B / A" in table
 
@@ -83,7 +83,7 @@ def test_scale_sweep_measures_every_stage_and_memory_against_n(tmp_path, capsys)
     assert "| blend-backward |" in table and "| peak memory, GB |" in table and f"N={ns[1]:,}" in table
     assert "| one call over its table, GB |" in table
     assert (tmp_path / "scale.png").stat().st_size > 0
-    assert main(["bench", "--scale", "2000", "--table-dtype", "float16", "--out", str(tmp_path / "cli")]) == 0
+    assert main(["bench", "scale", "2000", "--table-dtype", "float16", "--out", str(tmp_path / "cli")]) == 0
     assert "scale.md" in capsys.readouterr().out
     half = json.loads((tmp_path / "cli" / "scale.json").read_text())
     assert half["table_dtype"] == "float16" and half["memory"][0]["table_bytes"] == half["memory"][0]["n_gaussians"] * 1024

@@ -72,7 +72,7 @@ def test_bad_input_gets_a_message_not_a_traceback(tmp_path, capsys):
               "garbage.pt: not a torch checkpoint"),
              (["reproduce", "--quick", "--data", str(tmp_path / "nodata"), "--out", str(tmp_path / "r")],
               "nodata: no such folder (--data)"),
-             (["bench", "--compare", str(tmp_path / "a.json"), str(tmp_path / "b.json")], "a.json: No such file")]
+             (["bench", "compare", str(tmp_path / "a.json"), str(tmp_path / "b.json")], "a.json: No such file")]
     for argv, message in cases:
         assert main(argv) == 2, argv
         err = capsys.readouterr().err

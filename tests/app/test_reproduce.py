@@ -343,7 +343,7 @@ def test_report_writer(tmp_path):
 
 
 def test_cli_registers_reproduce():
-    assert DELEGATED["reproduce"][0] == "reproduce"
+    assert DELEGATED["reproduce"][0] == "experiments"
     args = build_parser().parse_args(["reproduce", "--quick", "--out", "x"])
     assert args.quick and not args.smoke and args.out == "x"
 

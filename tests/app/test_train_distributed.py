@@ -23,7 +23,7 @@ def test_two_ranks_match_gradient_accumulation(tmp_path):
             "--grid-size", "0.2", "--lr", "0.01", "-k", "8"]
     env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""), OMP_NUM_THREADS="1")
     cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nnodes", "1", "--nproc_per_node", "2",
-           "-m", "qr_cl.app.train", *scenes, "--out", str(tmp_path / "ddp"), *opts]
+           "-m", "qr_cl.app.training.command", *scenes, "--out", str(tmp_path / "ddp"), *opts]
     proc = subprocess.run(cmd, env=env, cwd=tmp_path, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     ddp = torch.load(tmp_path / "ddp" / "checkpoint.pt", weights_only=False)

@@ -1,4 +1,4 @@
-"""``qr-cl bench --implementations``: the same sweep on every OpenCL implementation installed
+"""``qr-cl bench implementations``: the same sweep on every OpenCL implementation installed
 here, one after the other (PoCL, the system's default, and those tests/drivers/install.sh put
 under ``$QR_CL_DRIVERS``), and their times side by side. Information for users, not a target: each
 implementation runs the kernels its own compiler built, on the same machine."""
@@ -21,14 +21,14 @@ def _key(row: dict) -> tuple:
 
 
 def run_all(mode: str, out: Path, data: Path | None) -> str:
-    """Run ``qr-cl bench`` in ``mode`` ("smoke", "quick" or "full") in a child per implementation
+    """Run ``qr-cl bench sweep`` in ``mode`` ("smoke", "quick" or "full") in a child per implementation
     (reports in ``out/<name>``), write ``out/implementations.md`` and return its text. An
     implementation that qr-cl refuses (or that fails) is listed with the reason."""
     names = ["pocl", *installed()]
     reports, failures = {}, {}
     for name in names:
         folder = out / name
-        cmd = [sys.executable, "-m", "qr_cl.app.cli", "bench", "--out", str(folder)]
+        cmd = [sys.executable, "-m", "qr_cl.app.cli", "bench", "sweep", "--out", str(folder)]
         cmd += {"smoke": ["--smoke"], "quick": ["--quick"], "full": []}[mode] + (["--data", str(data)] if data else [])
         print(f"bench on {name} ...", flush=True)
         run = subprocess.run(cmd, env=environment(name), capture_output=True, text=True)

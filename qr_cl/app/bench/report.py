@@ -1,7 +1,7 @@
 """The bench report: the summary in markdown (headline ratios, the renderer end to end, gradients,
 per stage, complexity fits) and the comparison of two reports. The report format
 (:data:`REPORT_VERSION`) is stable so that two reports, e.g. from two devices, can be compared
-with ``qr-cl bench --compare A.json B.json``."""
+with ``qr-cl bench compare A.json B.json``."""
 from __future__ import annotations
 
 import datetime

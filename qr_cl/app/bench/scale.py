@@ -1,4 +1,4 @@
-"""``qr-cl bench --scale``: how each stage's cost grows with the number of Gaussians N.
+"""``qr-cl bench scale``: how each stage's cost grows with the number of Gaussians N.
 
 The dense indoor room of :func:`qr_cl.app.scenes.procedural.dense_room` (layered semi-transparent
 walls and floaters) at N = 300k, 1M and 3M, one 640x480 camera, 512-D features (float32, or

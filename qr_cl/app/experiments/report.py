@@ -61,7 +61,7 @@ def _features_sentence(results: dict) -> str:
 
 
 def report_markdown(results: dict) -> str:
-    """The report of ``results`` (as :func:`qr_cl.app.reproduce.run_reproduction` returns and
+    """The report of ``results`` (as :func:`qr_cl.app.experiments.command.run_reproduction` returns and
     results.json holds)."""
     plan = results["plan"]
     lines = [f"# qr-cl reproduce ({results['mode']})", "",

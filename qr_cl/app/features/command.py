@@ -14,6 +14,7 @@ import sys
 from dataclasses import asdict
 from pathlib import Path
 
+from ..arguments import nonnegative_int, positive_int
 from ..process import process_cores
 from .errors import FeaturesError
 
@@ -35,10 +36,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                              "the CLIP weights or from an installed open_clip)")
     parser.add_argument("--classes", help="class names, comma-separated or a file: writes SCENE/classes.json")
     parser.add_argument("--device", default="cpu", help="torch device (default cpu; e.g. cuda, cuda:1, mps, xpu)")
-    parser.add_argument("--threads", type=int, help="torch CPU threads (default: this process's cores)")
-    parser.add_argument("--batch", type=int, default=32, help="mask crops per CLIP batch (default 32)")
-    parser.add_argument("--points-per-side", type=int, default=32, help="SAM point grid per side (LangSplat: 32)")
-    parser.add_argument("--crop-layers", type=int, default=1, help="SAM crop layers (LangSplat: 1, i.e. 1+4 crops)")
+    parser.add_argument("--threads", type=positive_int, help="torch CPU threads (default: this process's cores)")
+    parser.add_argument("--batch", type=positive_int, default=32, help="mask crops per CLIP batch (default 32)")
+    parser.add_argument("--points-per-side", type=positive_int, default=32, help="SAM point grid per side (LangSplat: 32)")
+    parser.add_argument("--crop-layers", type=nonnegative_int, default=1, help="SAM crop layers (LangSplat: 1, i.e. 1+4 crops)")
     parser.add_argument("--overwrite", action="store_true", help="redo frames already written")
 
 
@@ -101,11 +102,6 @@ def _run(args: argparse.Namespace) -> int:
     from .store import check_record, write_frame
     from .weights import file_sha256
 
-    for option, value in (("--batch", args.batch), ("--points-per-side", args.points_per_side)):
-        if value < 1:
-            raise FeaturesError(f"{option} {value}: at least 1")
-    if args.crop_layers < 0:
-        raise FeaturesError(f"--crop-layers {args.crop_layers}: at least 0")
     scene = Path(args.scene)
     cameras = load_cameras(scene / "cameras.json")
     images = find_images(args.images, cameras)

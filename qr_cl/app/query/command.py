@@ -20,13 +20,14 @@ from tqdm import tqdm
 
 from ...runtime import SAMPLERS
 from ...scene import Camera, orbit_cameras
+from ..arguments import AXES, nonnegative_int, positive_int
+from ..features.classes import recorded_encoder
+from ..features.weights import file_sha256
 from ..images import save_rgb
 from ..process import cap_kernel_threads
 from .pictures import heat_colours, overlay, render_rgb, render_values, write_score_ply, write_selection_ply
 from .relevancy import METHODS, score, score_range
 from .scene import QueryScene, load_query_scene, scene_features
-from ..features.classes import recorded_encoder
-from ..features.weights import file_sha256
 from .text import QueryError, TextEncoder, TextLookup, normalise, open_clip_encoder
 
 #: Views rendered by default: this many of the scene's cameras, evenly spaced (all when fewer).
@@ -47,20 +48,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--threshold", type=float,
                         help="also write the Gaussians scoring at least this as <query>_selected.ply")
     views = parser.add_mutually_exclusive_group()
-    views.add_argument("--views", type=int, nargs="*",
+    views.add_argument("--views", type=nonnegative_int, nargs="*",
                        help=f"camera indices to render (default: {DEFAULT_VIEWS} evenly spaced cameras)")
-    views.add_argument("--orbit", type=int, help=f"render this many orbit views instead (default for a bare "
+    views.add_argument("--orbit", type=positive_int, help=f"render this many orbit views instead (default for a bare "
                                                  f"scene file: {DEFAULT_VIEWS})")
-    parser.add_argument("--width", type=int, help="image width in px (rescales cameras; orbit default 640)")
-    parser.add_argument("--up-axis", type=int, default=2, help="world up axis of orbits (2 = z, 1 = y)")
+    parser.add_argument("--width", type=positive_int, help="image width in px (rescales cameras; orbit default 640)")
+    parser.add_argument("--up-axis", type=int, choices=AXES, default=2, help="world up axis of orbits (2 = z, 1 = y)")
     parser.add_argument("--sampler", choices=SAMPLERS, default="quantile",
                         help="renderer of the heatmaps (default quantile)")
-    parser.add_argument("-k", type=int, default=40, help="K of the sampler (default 40)")
+    parser.add_argument("-k", type=positive_int, default=40, help="K of the sampler (default 40)")
     parser.add_argument("--clip-weights", help="local OpenCLIP weights file: encodes text the tables lack "
                                                "(needs pip install 'qr-cl[clip]'; nothing is downloaded)")
     parser.add_argument("--clip-model", default="ViT-B-32",
                         help="OpenCLIP architecture of --clip-weights (default ViT-B-32)")
-    parser.add_argument("--level", type=int, default=0, help="LangSplat mask level of a scene folder (default 0)")
+    parser.add_argument("--level", type=nonnegative_int, default=0, help="LangSplat mask level of a scene folder (default 0)")
 
 
 def file_stem(text: str) -> str:
@@ -150,8 +151,6 @@ def run(args: argparse.Namespace, encoder: TextEncoder | None = None) -> int:
 
 
 def _run(args: argparse.Namespace, encoder: TextEncoder | None) -> int:
-    if args.k < 1:
-        raise QueryError(f"-k {args.k}: K is at least one Gaussian per ray")
     cap_kernel_threads()
     scene = load_query_scene(args.scene, args.level)
     if args.clip_weights:

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..arguments import positive_int
 from ..evaluation.labels import ground_truth
 from ..evaluation.scoring import evaluate_features, markdown_table
 from ..process import cap_kernel_threads
@@ -26,22 +27,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``qr-cl register``."""
     parser.add_argument("scene", help="scene folder (point_cloud.ply, cameras.json, language_features/)")
     parser.add_argument("--out", required=True, help="output folder (features.npy, registration.json)")
-    parser.add_argument("-k", type=int, default=DRSPLAT_K,
+    parser.add_argument("-k", type=positive_int, default=DRSPLAT_K,
                         help=f"top contributors per pixel, by weight alpha*T (default {DRSPLAT_K})")
     parser.add_argument("--levels", nargs="+", default=["0"],
                         help="LangSplat mask levels to register, summed (default 0; 'all' for 0 1 2 3)")
-    parser.add_argument("--chunk-rays", type=int, default=CHUNK_RAYS,
+    parser.add_argument("--chunk-rays", type=positive_int, default=CHUNK_RAYS,
                         help=f"pixels per selection, bounding memory (default {CHUNK_RAYS})")
 
 
 def parse_levels(values: list[str]) -> list[int]:
-    """``--levels`` as level indices: 'all' for :data:`ALL_LEVELS`, else integers."""
+    """``--levels`` as level indices: 'all' for :data:`ALL_LEVELS`, else some of them."""
     if values == ["all"]:
         return list(ALL_LEVELS)
-    try:
-        return sorted({int(v) for v in values})
-    except ValueError:
-        raise SystemExit(f"qr-cl register: --levels takes level numbers or 'all', got {' '.join(values)}") from None
+    if not all(v.isdigit() and int(v) in ALL_LEVELS for v in values):
+        raise SystemExit(f"qr-cl register: --levels takes levels of {' '.join(map(str, ALL_LEVELS))} or 'all', "
+                         f"got {' '.join(values)}")
+    return sorted({int(v) for v in values})
 
 
 def save_npy_atomic(path: Path, array: np.ndarray) -> None:
@@ -55,8 +56,6 @@ def run(args: argparse.Namespace) -> int:
     """Register the scene, write features.npy and registration.json, print the summary (and the
     scores, when the scene has ground truth)."""
     cap_kernel_threads()
-    if args.k < 1:
-        raise SystemExit(f"qr-cl register: -k must be at least 1, got {args.k}")
     levels = parse_levels(args.levels)
     scenes = [load_scene_folder(args.scene, level) for level in levels]
     scene = scenes[0]

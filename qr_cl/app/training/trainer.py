@@ -28,7 +28,7 @@ beside the network's backward (torch only), never beside the training thread's o
 OpenCL kernel objects (ours and pyopencl's) must not be set up from two threads at once, and the
 two threads never run OpenCL work at the same time.
 
-Scale-out: ``torchrun --nproc_per_node N -m qr_cl.app.train ...`` runs data-parallel over the
+Scale-out: ``torchrun --nproc_per_node N -m qr_cl.app.training.command ...`` runs data-parallel over the
 scenes of a step (gloo on CPU): rank r takes slots r, r+N, ...; gradients are summed with
 all_reduce, so N ranks end with the weights of one rank accumulating the same scenes. Every
 process creates its own OpenCL context (torchrun spawns fresh interpreters; never fork after

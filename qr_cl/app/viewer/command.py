@@ -16,6 +16,7 @@ import errno
 import sys
 
 from ...runtime import SAMPLERS
+from ..arguments import AXES, nonnegative_int, port_number, positive_int
 from ..process import cap_kernel_threads
 from ..query.relevancy import METHODS
 from ..query.scene import load_query_scene, scene_features
@@ -36,22 +37,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     src = parser.add_mutually_exclusive_group()
     src.add_argument("--checkpoint", help="GS-Net checkpoint.pt: adds the PCA, classes and relevancy modes")
     src.add_argument("--features", help="per-Gaussian features (.npy [N,C] or a PLY with feature_<i> properties)")
-    parser.add_argument("--port", type=int, default=8000, help="port on --host (default 8000; 0 = any free one)")
+    parser.add_argument("--port", type=port_number, default=8000, help="port on --host (default 8000; 0 = any free one)")
     parser.add_argument("--host", default="127.0.0.1",
                         help="address to serve on (default 127.0.0.1, this machine only)")
-    parser.add_argument("--width", type=int, default=640, help="full frame width, px (default 640)")
-    parser.add_argument("--height", type=int, default=480, help="full frame height, px (default 480)")
+    parser.add_argument("--width", type=positive_int, default=640, help="full frame width, px (default 640)")
+    parser.add_argument("--height", type=positive_int, default=480, help="full frame height, px (default 480)")
     parser.add_argument("--frame-ms", type=float, default=TARGET_MS,
                         help=f"render time per frame (ms) to keep while the camera moves; frames shrink "
                              f"to fit it (default {TARGET_MS})")
-    parser.add_argument("--up-axis", type=int, default=2,
+    parser.add_argument("--up-axis", type=int, choices=AXES, default=2,
                         help="world up axis for a scene without cameras (2 = z, 1 = y)")
     parser.add_argument("--sampler", choices=SAMPLERS, default="quantile", help="initial sampler of the feature modes")
-    parser.add_argument("-k", type=int, default=40, help="initial K (default 40)")
+    parser.add_argument("-k", type=positive_int, default=40, help="initial K (default 40)")
     parser.add_argument("--score", choices=METHODS, default="relevancy", help="relevancy (default) or cosine")
     parser.add_argument("--clip-weights", help="local OpenCLIP weights file for arbitrary query text (qr-cl[clip])")
     parser.add_argument("--clip-model", default="ViT-B-32", help="OpenCLIP architecture (default ViT-B-32)")
-    parser.add_argument("--level", type=int, default=0, help="LangSplat mask level of a scene folder (default 0)")
+    parser.add_argument("--level", type=nonnegative_int, default=0, help="LangSplat mask level of a scene folder (default 0)")
 
 
 def build_server(args: argparse.Namespace, encoder: TextEncoder | None = None) -> ViewerServer:

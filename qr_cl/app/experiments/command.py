@@ -44,28 +44,29 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from ..runtime import runtime
-from .evaluation.labels import ground_truth, reached_gaussians
-from .experiments.agreement import feature_agreement
-from .experiments.claims import paper_claims
-from .experiments.depth_rooms import depth_room_study
-from .experiments.plan import NOISE_K, PLANS, Plan, plan_runs
-from .experiments.ray_depth import ray_depth_study
-from .experiments.render_times import render_times
-from .experiments.report import write_report
-from .experiments.rgb import rgb_study
-from .experiments.rooms import splat_rooms
-from .experiments.scene_statistics import compare_scenes
-from .experiments.segmentation import segmentation_study
-from .experiments.table2 import table2_claims, table2_lines, table2_stats
-from .experiments.training_runs import free_feature_scores, overfit_scores, registration_scores, train_and_evaluate
-from .experiments.transmittance import transmittance_study
-from .process import cap_kernel_threads, keep_freed_memory, release_freed_memory, torch_threads
-from .scenes.folders import load_scene_folder
-from .scenes.room_config import FEATURE_FIELDS, SyntheticConfig
-from .scenes.synthetic import room_folder
-from .timing import Stopwatch
-from .training.network import network_features
+from ...runtime import runtime
+from ..arguments import nonnegative_int
+from ..evaluation.labels import ground_truth, reached_gaussians
+from ..process import cap_kernel_threads, keep_freed_memory, release_freed_memory, torch_threads
+from ..scenes.folders import load_scene_folder
+from ..scenes.room_config import FEATURE_FIELDS, SyntheticConfig
+from ..scenes.synthetic import room_folder
+from ..timing import Stopwatch
+from ..training.network import network_features
+from .agreement import feature_agreement
+from .claims import paper_claims
+from .depth_rooms import depth_room_study
+from .plan import NOISE_K, PLANS, Plan, plan_runs
+from .ray_depth import ray_depth_study
+from .render_times import render_times
+from .report import write_report
+from .rgb import rgb_study
+from .rooms import splat_rooms
+from .scene_statistics import compare_scenes
+from .segmentation import segmentation_study
+from .table2 import table2_claims, table2_lines, table2_stats
+from .training_runs import free_feature_scores, overfit_scores, registration_scores, train_and_evaluate
+from .transmittance import transmittance_study
 
 
 def run_reproduction(plan: Plan, mode: str, out: Path, cache: Path | None, data: Path | None, seed: int,
@@ -141,7 +142,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", default=os.environ.get("QR_CL_DATA"),
                         help="folder with the real scenes (wakufactory-fox/fox.ply, v3dg-donut/donut_fused.ply; "
                              "default $QR_CL_DATA): compared with the synthetic rooms and used for RGB fidelity")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=nonnegative_int, default=0)
 
 
 def run(args: argparse.Namespace) -> int:

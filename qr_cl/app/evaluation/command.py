@@ -16,12 +16,13 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from .evaluation.labels import ground_truth
-from .evaluation.scoring import evaluate_features, markdown_table
-from .evaluation.visuals import frame_cameras, write_visuals
-from .process import torch_threads
-from .scenes.folders import load_scene_folder
-from .training.network import load_checkpoint, network_features
+from ..arguments import nonnegative_int, positive_float, positive_int
+from ..process import torch_threads
+from ..scenes.folders import load_scene_folder
+from ..training.network import load_checkpoint, network_features
+from .labels import ground_truth
+from .scoring import evaluate_features, markdown_table
+from .visuals import frame_cameras, write_visuals
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -33,12 +34,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, help="output folder (results.json, results.md, images/)")
     parser.add_argument("--gt", choices=("auto", "points", "gaussians"), default="auto",
                         help="ground truth: App. B from labels/points.ply, labels/gaussian_labels.npy, or auto")
-    parser.add_argument("--knn", type=int, default=5, help="App. B neighbours (default 5)")
-    parser.add_argument("--max-mahalanobis", type=float, default=0.1, help="App. B distance cut (default 0.1)")
-    parser.add_argument("--views", type=int, nargs="*", default=[0], help="frames to render images of (default 0)")
+    parser.add_argument("--knn", type=positive_int, default=5, help="App. B neighbours (default 5)")
+    parser.add_argument("--max-mahalanobis", type=positive_float, default=0.1, help="App. B distance cut (default 0.1)")
+    parser.add_argument("--views", type=nonnegative_int, nargs="*", default=[0], help="frames to render images of (default 0)")
     parser.add_argument("--query", help="class name whose relevancy the images show (default: the most "
                                         "common labelled class other than wall and floor)")
-    parser.add_argument("--level", type=int, default=0, help="LangSplat mask level (default 0)")
+    parser.add_argument("--level", type=nonnegative_int, default=0, help="LangSplat mask level (default 0)")
 
 
 def run(args: argparse.Namespace) -> int:

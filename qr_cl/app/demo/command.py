@@ -28,22 +28,23 @@ from pathlib import Path
 
 import numpy as np
 
-from .evaluation.labels import ground_truth, reached_gaussians
-from .evaluation.scoring import evaluate_features, markdown_table
-from .evaluation.visuals import PANEL_SIZE, write_comparison, write_visuals
-from .experiments.claims import Stat
-from .experiments.table2 import COLUMNS, ROWS_TEXT, table2_lines
-from .process import cap_kernel_threads, keep_freed_memory, release_freed_memory, torch_threads
-from .registration.register import DRSPLAT_K, register, scene_views
-from .scenes.folders import load_scene_folder
-from .scenes.room_config import FEATURE_FIELDS, STYLES, SyntheticConfig
-from .scenes.synthetic import room_folder
-from .scenes.views import room_overview_cameras
-from .timing import Stopwatch
-from .training.free_features import fit_free_features
-from .training.config import TrainConfig
-from .training.network import network_features
-from .training.trainer import train
+from ..arguments import nonnegative_int, positive_int
+from ..evaluation.labels import ground_truth, reached_gaussians
+from ..evaluation.scoring import evaluate_features, markdown_table
+from ..evaluation.visuals import PANEL_SIZE, write_comparison, write_visuals
+from ..experiments.claims import Stat
+from ..experiments.table2 import COLUMNS, ROWS_TEXT, table2_lines
+from ..process import cap_kernel_threads, keep_freed_memory, release_freed_memory, torch_threads
+from ..registration.register import DRSPLAT_K, register, scene_views
+from ..scenes.folders import load_scene_folder
+from ..scenes.room_config import FEATURE_FIELDS, STYLES, SyntheticConfig
+from ..scenes.synthetic import room_folder
+from ..scenes.views import room_overview_cameras
+from ..timing import Stopwatch
+from ..training.config import TrainConfig
+from ..training.free_features import fit_free_features
+from ..training.network import network_features
+from ..training.trainer import train
 
 #: Gaussians per room of each synthetic style (the default of ``--gaussians``).
 ROOM_GAUSSIANS = {"3dgs": 60000, "flat": 24000}
@@ -58,23 +59,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``qr-cl demo``."""
     parser.add_argument("--out", default="qr-cl-demo", help="report folder (default ./qr-cl-demo)")
     parser.add_argument("--cache", help="scene cache (default $QR_CL_CACHE/scenes or ~/.cache/qr-cl/scenes)")
-    parser.add_argument("--train-scenes", type=int, default=4, help="training rooms (default 4)")
+    parser.add_argument("--train-scenes", type=positive_int, default=4, help="training rooms (default 4)")
     parser.add_argument("--style", choices=STYLES, default="3dgs",
                         help="3DGS-like rooms: semi-transparent shells of anisotropic Gaussians and floaters "
                              "(default), or the flat opaque rooms of earlier releases (qr_cl/app/scenes/synthetic.py)")
     parser.add_argument("--features", choices=tuple(FEATURE_FIELDS), default="clip",
                         help="simulated CLIP features around the real CLIP text embeddings of the class names "
                              "(default), or random nearly orthogonal class prototypes (earlier releases)")
-    parser.add_argument("--gaussians", type=int,
+    parser.add_argument("--gaussians", type=positive_int,
                         help="Gaussians per room (default: " + ", ".join(f"{n} for {s} rooms" for s, n in
                                                                         ROOM_GAUSSIANS.items()) + ")")
-    parser.add_argument("--steps", type=int, default=720,
+    parser.add_argument("--steps", type=positive_int, default=720,
                         help="steps of the main run, of GS-Net overfit and of the free features (default 720)")
-    parser.add_argument("--short-steps", type=int, default=240,
+    parser.add_argument("--short-steps", type=positive_int, default=240,
                         help="steps of the renderer comparison runs (default 240)")
-    parser.add_argument("--rays", type=int, default=2048, help="rays per view (default 2048)")
-    parser.add_argument("--views", type=int, default=4, help="views per step (default 4)")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--rays", type=positive_int, default=2048, help="rays per view (default 2048)")
+    parser.add_argument("--views", type=positive_int, default=4, help="views per step (default 4)")
+    parser.add_argument("--seed", type=nonnegative_int, default=0)
 
 
 def _train(cfg: TrainConfig, resume: bool = False) -> tuple[dict, float]:

@@ -1,6 +1,6 @@
 """``qr-cl train``: GS-Net trained through a feature renderer with the contrastive loss (paper App. D).
 
-The command, also run as ``python -m qr_cl.app.train`` (e.g. under torchrun): one process, or one
+The command, also run as ``python -m qr_cl.app.training.command`` (e.g. under torchrun): one process, or one
 rank of a torchrun job when ``WORLD_SIZE`` > 1. The training itself: :mod:`qr_cl.app.training.trainer`.
 """
 from __future__ import annotations
@@ -12,39 +12,40 @@ from pathlib import Path
 
 import torch.distributed as dist
 
-from ..runtime import SAMPLERS
-from .process import cap_kernel_threads, keep_freed_memory, torch_threads
-from .training.config import TrainConfig
-from .training.network import NETS
-from .training.trainer import train
+from ...runtime import SAMPLERS
+from ..arguments import OneLineParser, nonnegative_int, positive_float, positive_int
+from ..process import cap_kernel_threads, keep_freed_memory, torch_threads
+from .config import TrainConfig
+from .network import NETS
+from .trainer import train
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Options of ``qr-cl train`` / ``python -m qr_cl.app.train``."""
+    """Options of ``qr-cl train`` / ``python -m qr_cl.app.training.command``."""
     d = TrainConfig(scenes=["-"], out="-")
     parser.add_argument("scenes", nargs="+", help="scene folders (point_cloud.ply, cameras.json, language_features/)")
     parser.add_argument("--out", required=True, help="output folder (checkpoint.pt, train_log.json)")
-    parser.add_argument("--steps", type=int, default=d.steps, help=f"optimizer steps (default {d.steps})")
-    parser.add_argument("--batch-scenes", type=int, default=d.batch_scenes,
+    parser.add_argument("--steps", type=positive_int, default=d.steps, help=f"optimizer steps (default {d.steps})")
+    parser.add_argument("--batch-scenes", type=positive_int, default=d.batch_scenes,
                         help="scenes per step, split over ranks (default 1)")
-    parser.add_argument("--views", type=int, default=d.views, help="views per scene per step (default 4)")
-    parser.add_argument("--rays", type=int, default=d.rays, help="rays per view (default 2048)")
+    parser.add_argument("--views", type=positive_int, default=d.views, help="views per scene per step (default 4)")
+    parser.add_argument("--rays", type=positive_int, default=d.rays, help="rays per view (default 2048)")
     parser.add_argument("--sampler", choices=SAMPLERS, default=d.sampler, help="feature renderer (default quantile)")
-    parser.add_argument("-k", type=int, default=d.k, help="K of quantile/topk (default 40)")
-    parser.add_argument("--lr", type=float, default=d.lr, help="Adam learning rate (default 1e-2)")
-    parser.add_argument("--temperature", type=float, default=d.temperature, help="loss temperature (default 0.1)")
-    parser.add_argument("--grid-size", type=float, default=d.grid_size, help="voxel size, scene units (default 0.1)")
+    parser.add_argument("-k", type=positive_int, default=d.k, help="K of quantile/topk (default 40)")
+    parser.add_argument("--lr", type=positive_float, default=d.lr, help="Adam learning rate (default 1e-2)")
+    parser.add_argument("--temperature", type=positive_float, default=d.temperature, help="loss temperature (default 0.1)")
+    parser.add_argument("--grid-size", type=positive_float, default=d.grid_size, help="voxel size, scene units (default 0.1)")
     parser.add_argument("--net", choices=sorted(NETS), default=d.net, help="UNet preset (default small)")
-    parser.add_argument("--seed", type=int, default=d.seed)
-    parser.add_argument("--checkpoint-every", type=int, default=d.checkpoint_every, help="steps (default 50)")
-    parser.add_argument("--plateau-interval", type=int, default=d.plateau_interval,
+    parser.add_argument("--seed", type=nonnegative_int, default=d.seed)
+    parser.add_argument("--checkpoint-every", type=positive_int, default=d.checkpoint_every, help="steps (default 50)")
+    parser.add_argument("--plateau-interval", type=positive_int, default=d.plateau_interval,
                         help="steps per ReduceLROnPlateau observation (default 25)")
-    parser.add_argument("--level", type=int, default=d.level, help="LangSplat mask level (default 0)")
-    parser.add_argument("--view-selections-mb", type=int, default=d.view_selections_mb,
+    parser.add_argument("--level", type=nonnegative_int, default=d.level, help="LangSplat mask level (default 0)")
+    parser.add_argument("--view-selections-mb", type=nonnegative_int, default=d.view_selections_mb,
                         help="MiB of whole-view selections kept for gathering rays (default 1024; 0 selects "
                              "each step's rays afresh; same results either way)")
     parser.add_argument("--resume", action="store_true", help="continue from <out>/checkpoint.pt")
-    parser.add_argument("--torch-threads", type=int, default=1, help="torch intra-op threads (default 1)")
+    parser.add_argument("--torch-threads", type=positive_int, default=1, help="torch intra-op threads (default 1)")
 
 
 def config_from_args(args: argparse.Namespace) -> TrainConfig:
@@ -92,8 +93,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of ``python -m qr_cl.app.train`` (e.g. under torchrun)."""
-    parser = argparse.ArgumentParser(prog="python -m qr_cl.app.train", description=__doc__.split("\n")[0])
+    """Entry point of ``python -m qr_cl.app.training.command`` (e.g. under torchrun)."""
+    parser = OneLineParser(prog="python -m qr_cl.app.training.command", description=__doc__.split("\n")[0])
     add_arguments(parser)
     return run(parser.parse_args(argv))
 
