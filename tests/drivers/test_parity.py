@@ -12,8 +12,10 @@ float16, within 1e-3) in all but 0.1 % of its rows: rays whose transmittance mee
 boundary, or whose Gaussian's alpha meets the 1/255 cut or whose T meets V-Render's stop, at float
 rounding, decide differently under another compiler. rusticl (llvmpipe) ends loops after 65535
 iterations, so it walks in windows; its compiler does not fuse multiply-adds as PoCL's and
-Intel's do, so its projection differs from theirs in the last bits. The kernel-against-twin tests
-run on Intel's runtime too. Skipped for implementations not installed.
+Intel's do, so its projection differs from theirs in the last bits. The default suite renders the
+procedural scene; the slow suite adds the real scenes, the dense room, rusticl's CPU shapes and
+self-check, and the kernel-against-twin tests on Intel's runtime. Skipped for implementations
+not installed.
 
 Run as a script (``python tests/drivers/test_parity.py OUT.npz SCENE...``) this file is the child.
 """
@@ -30,8 +32,9 @@ import pytest
 from qr_cl.app.bench.parity import compare
 from qr_cl.runtime.implementations import NAMES, environment, installed
 
-#: Scenes of the default run; "dense" (the 300k-Gaussian room) runs in the slow suite.
-SCENES = ["random", "fox", "donut"]
+#: The real scenes, rendered on each implementation in the slow suite (as is "dense", the
+#: 300k-Gaussian room); the default suite renders the procedural "random" scene.
+REAL_SCENES = ["fox", "donut"]
 SHAPES = ["cpu", "gpu"]
 
 
@@ -55,10 +58,6 @@ def run_child(implementation: str, shape: str, cache: Path, out: Path, scenes: l
                           **env)
     return subprocess.run([sys.executable, __file__, str(out), *scenes], env=environ, capture_output=True,
                           text=True, timeout=900)
-
-
-def scenes_here(shared: bool) -> list[str]:
-    return SCENES if shared else ["random"]
 
 
 @pytest.fixture(scope="module")
@@ -95,24 +94,24 @@ def check_equal_first_and_cached(name: str, shape: str, scenes: list[str], refer
 @pytest.mark.parametrize("shape", SHAPES)
 def test_intel_equals_pocl_first_and_cached(shape, reference, tmp_path):
     needs("intel")
-    check_equal_first_and_cached("intel", shape, scenes_here(reference.shared), reference, tmp_path)
+    check_equal_first_and_cached("intel", shape, ["random"], reference, tmp_path)
 
 
-@pytest.mark.parametrize("shape", SHAPES)
+@pytest.mark.parametrize("shape", [pytest.param("cpu", marks=pytest.mark.slow), "gpu"])
 def test_rusticl_equals_pocl_first_and_cached(shape, reference, tmp_path):
-    """On the procedural scene: llvmpipe's compiler makes a run of the three scenes take minutes
-    (the real scenes run in the slow suite)."""
+    """On the procedural scene, in the GPU shapes by default: llvmpipe's compiler is slow."""
     needs("rusticl")
     check_equal_first_and_cached("rusticl", shape, ["random"], reference, tmp_path)
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("name", NAMES)
 @pytest.mark.parametrize("shape", SHAPES)
-def test_rusticl_equals_pocl_on_the_real_scenes(shape, reference, tmp_path):
-    needs("rusticl")
+def test_implementation_equals_pocl_on_the_real_scenes(name, shape, reference, tmp_path):
+    needs(name)
     if not reference.shared:
         pytest.skip("the real scenes are not here")
-    check_equal_first_and_cached("rusticl", shape, ["fox", "donut"], reference, tmp_path)
+    check_equal_first_and_cached(name, shape, REAL_SCENES, reference, tmp_path)
 
 
 @pytest.mark.slow
@@ -123,6 +122,7 @@ def test_implementation_equals_pocl_on_the_dense_room(name, shape, reference, tm
     check_equal_first_and_cached(name, shape, ["dense"], reference, tmp_path)
 
 
+@pytest.mark.slow
 def test_rusticl_passes_the_self_check_walking_in_windows():
     """Mesa 22.3's llvmpipe ends loops after 65535 iterations: measured by the loop probe, so its
     walks go in windows, and it passes the render check (it was refused before windows)."""
@@ -147,6 +147,7 @@ KERNEL_TESTS = (["stages/test_blend.py", "stages/test_sh.py", "stages/test_vrend
 KERNEL_TESTS_LEFT_OUT = ["render/test_rasterize.py::test_real_scenes_match_reference"]
 
 
+@pytest.mark.slow
 def test_kernel_tests_pass_on_intel(tmp_path, data_dir):
     needs("intel")
     tests = Path(__file__).resolve().parents[1]
