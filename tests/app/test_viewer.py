@@ -21,7 +21,7 @@ import pytest
 from matplotlib.image import imread, imsave
 
 from qr_cl.app.cli import build_parser, main
-from qr_cl.app.demo import ROOM_GAUSSIANS
+from qr_cl.app.demo.command import ROOM_GAUSSIANS
 from qr_cl.app.query.scene import load_query_scene
 from qr_cl.app.query.text import QueryError
 from qr_cl.app.scenes.room_config import SyntheticConfig
