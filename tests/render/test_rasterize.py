@@ -41,8 +41,8 @@ def test_bad_input_shapes_are_named():
         qr_cl.rasterize(g.means, g.quats, g.scales, g.opacities, np.zeros((60, 2049)), cam.viewmat, cam.K, W, H)
 
 
-@pytest.mark.parametrize("scene", ["fox", "donut"])
-@pytest.mark.parametrize("channels", [3, 64])
+@pytest.mark.parametrize("scene,channels", [("fox", 3), pytest.param("fox", 64, marks=pytest.mark.slow),
+                                            pytest.param("donut", 3, marks=pytest.mark.slow), ("donut", 64)])
 def test_real_scenes_match_reference(request, scene, channels):
     if scene == "fox":
         g = request.getfixturevalue("fox")

@@ -62,7 +62,7 @@ def random_plan(random_scene):
 
 CASES = [("volume", 0), ("quantile", 1), ("quantile", 4), ("quantile", 10), ("quantile", 1000),
          ("topk", 1), ("topk", 10), ("topk", 1000), ("stratified", 1), ("stratified", 4),
-         ("stratified", 10), ("stratified", 1000)]
+         ("stratified", 10), pytest.param("stratified", 1000, marks=pytest.mark.slow)]
 
 
 @pytest.mark.parametrize("sampler,k", CASES)
