@@ -16,7 +16,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from ..render.selfcheck import checked_runtime
+from ..render import checked_runtime
 from .bench import roofline
 from .bench.complexity import complexity_fits, complexity_jobs
 from .bench.implementations import run_all

@@ -1,5 +1,5 @@
 """A gsplat-compatible, differentiable rasterizer: :func:`rasterization` takes gsplat's argument
-names, shapes and conventions (batched cameras, SH or colours, render modes, backgrounds, packed or
+names, shapes and conventions (batched cameras, SH or colors, render modes, backgrounds, packed or
 dense meta) and returns what gsplat returns, with gradients w.r.t. the Gaussians, the cameras'
 viewmats and gsplat's 2-D tensors (``meta["means2d"].grad``, ``.absgrad``: what densification
 strategies read), and Q-Render / top-K as samplers; :func:`rasterize_top_contributing_gaussian_ids`
@@ -18,10 +18,9 @@ import numpy as np
 import torch
 
 from ..runtime import ALPHA_MIN, TILE, device_zeros, to_device
-from ..stages.binning import RasterPlan
-from ..stages.select import check_sampler, select
+from ..stages import RasterPlan, check_sampler, select
 from .autograd import AbsGradSink, View
-from .engine import Render, Splats2D, gaussian_tensors, project_view, render_view, sh_colours
+from .engine import Render, Splats2D, gaussian_tensors, project_view, render_view, sh_colors
 from .selfcheck import checked_runtime
 
 RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
@@ -290,6 +289,7 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
         raise ValueError("gradients w.r.t. Ks (camera intrinsics) are not implemented, as in gsplat; pass Ks "
                          "detached (viewmats may require grad)")
     n = means.shape[0]
+    rt = checked_runtime()
     per_colors = _per_camera(colors, n_cameras, 2 if sh_degree is None else 3,
                              "colors" if sh_degree is None else f"colors (SH coefficients, sh_degree={sh_degree})")
     per_extra = [None] * n_cameras if extra_signals is None else _per_camera(extra_signals, n_cameras, 2,
@@ -304,7 +304,7 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
                   int(width), int(height), float(near_plane), float(far_plane), sampler, k)
              for c in range(n_cameras)]
     if n:
-        plans, means2d, conics, depths = project_view(means, quats, scales, opacities, views, view_t)
+        plans, means2d, conics, depths = project_view(means, quats, scales, opacities, views, view_t, rt=rt)
     else:
         plans, means2d, conics, depths = (None, means.new_zeros(n_cameras, 0, 2), means.new_zeros(n_cameras, 0, 3),
                                           means.new_zeros(n_cameras, 0))
@@ -313,12 +313,12 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
     for c in range(n_cameras):
         features = None
         if render_mode not in ("D", "ED"):
-            features = per_colors[c] if sh_degree is None else sh_colours(per_colors[c], means, view_t[c], sh_degree)
+            features = per_colors[c] if sh_degree is None else sh_colors(per_colors[c], means, view_t[c], sh_degree, rt)
         if render_mode != "RGB":
             features = depths[c][:, None] if features is None else torch.cat([features, depths[c][:, None]], 1)
         out = render_view(means, quats, scales, opacities, features, per_bg[c], views[c], viewmat=view_t[c],
                           splats=splats[c] if n else None, absgrad=sinks[c],
-                          extra=None if per_extra[c] is None else per_extra[c].to("cpu", torch.float32))
+                          extra=None if per_extra[c] is None else per_extra[c].to("cpu", torch.float32), rt=rt)
         image, alpha = out.image.reshape(height, width, -1), out.alpha.reshape(height, width, 1)
         if render_mode.endswith("ED"):
             image = torch.cat([image[..., :-1], image[..., -1:] / alpha.clamp_min(1e-10)], -1)

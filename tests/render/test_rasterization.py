@@ -331,14 +331,14 @@ def test_a_row_parts_geometry_gradient_equals_its_twin(random_scene, sampler, k)
 
 def test_pixel_subset_gradients_equal_twin(random_scene):
     """The engine on a pixel subset (View.pixels; the kernels' non-full ray path)."""
-    from qr_cl.render import View, render_view
+    from qr_cl.render import View, checked_runtime, render_view
     m, q, s, o, v, K, w, h = random_scene
     rng = np.random.default_rng(9)
     pixels = rng.integers(0, [w, h], (300, 2)).astype(np.int32)
     colors = rng.random((len(m), 3)).astype(np.float32)
     inputs = tensors(m, q, s, o, colors, grad=True)
     view = View(v, K, w, h, sampler="quantile", k=5, pixels=pixels)
-    out = render_view(*inputs, None, view)
+    out = render_view(*inputs, None, view, rt=checked_runtime())
     image, sel = out.image, out.selections[0]
     target = torch.randn(image.shape)
     (image * target).sum().backward()
