@@ -71,8 +71,8 @@ def _with_depth(background: torch.Tensor | None, render_mode: str) -> torch.Tens
     for "D" and "ED")."""
     if background is None or render_mode == "RGB":
         return background
-    colour = background[:0] if render_mode in ("D", "ED") else background
-    return torch.cat([colour, background.new_zeros(1)])
+    color = background[:0] if render_mode in ("D", "ED") else background
+    return torch.cat([color, background.new_zeros(1)])
 
 
 def _absgrad_sink(target: torch.Tensor, rows: int | slice, ids: torch.Tensor | None) -> AbsGradSink:
@@ -231,7 +231,7 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
             Gaussian) pairs that are not culled, with ``camera_ids`` and ``gaussian_ids`` [nnz];
             False: [C, N, ...] (culled Gaussians have radii 0). The images are the same.
         backgrounds: [C,D] or None (black); depth channels get background 0.
-        render_mode: "RGB" (the D colour channels), "D" (accumulated depth sum_i w_i z_i), "ED"
+        render_mode: "RGB" (the D color channels), "D" (accumulated depth sum_i w_i z_i), "ED"
             (expected depth, D / alpha), "RGB+D", "RGB+ED" (depth as the last channel).
         absgrad: gsplat's AbsGS option: after backward, ``meta["means2d"].absgrad`` (the shape of
             meta["means2d"]) holds per Gaussian the sum over the pixels (the selection's entries)
@@ -243,10 +243,10 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
         sampler, k (qr-cl's own): "volume" (gsplat's alpha blending, the default), "quantile"
             (Q-Render with K = k), "topk" or "stratified" (see :func:`qr_cl.rasterize`).
         extra_signals (qr-cl's own): [N,F] or [C,N,F] per-Gaussian signals (e.g. 512-D features,
-            F in 1..2048) blended through the colours' selection (one plan, one selection walk per
+            F in 1..2048) blended through the colors' selection (one plan, one selection walk per
             ray, then a blend of their own): returned as ``meta["render_extra_signals"]``
-            [C,H,W,F] (background 0), differentiable as the colours are (with absgrad, the
-            colours' and the signals' per-pixel terms are added in absolute value apart).
+            [C,H,W,F] (background 0), differentiable as the colors are (with absgrad, the
+            colors' and the signals' per-pixel terms are added in absolute value apart).
         The other gsplat arguments are accepted only at the values in :data:`UNSUPPORTED`.
 
     Returns:
@@ -270,7 +270,7 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
     samplers the selection is piecewise constant in the geometry and render_alphas carries no
     gradient. Ks get no gradient (Ks that require one raise a ValueError). Each camera renders
     through :func:`qr_cl.render.engine.render_view`, as :func:`qr_cl.rasterize` does: the same
-    colour stage (sh.cl) and the same splitting of renders larger than the device's largest
+    color stage (sh.cl) and the same splitting of renders larger than the device's largest
     buffer.
     """
     _check_options(dict(radius_clip=radius_clip, eps2d=eps2d, tile_size=tile_size, sparse_grad=sparse_grad,

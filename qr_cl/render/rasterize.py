@@ -115,7 +115,7 @@ def rasterize(means, quats, scales, opacities, features, viewmat, K, width: int,
         :class:`qr_cl.runtime.HostMemoryError`, also naming them.
 
         Compositing RGB from "quantile" (and "topk"/"stratified"): the selected weights are
-        normalized to sum to 1, so the image is the colour *given* a hit; faint edges and
+        normalized to sum to 1, so the image is the color *given* a hit; faint edges and
         floaters come out opaque (halos). Multiply it by V-Render's alpha (``sampler="volume"``
         or :func:`render_volume_fused`: 1 - final T) before compositing; the alpha a K sampler
         returns itself (1 - T where its walk stopped) needs no second walk and is a little
