@@ -193,20 +193,22 @@ def render_view(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, 
     made: list[Splats2D] = [] if splats is None else [splats]
 
     def selection(rays: np.ndarray | None) -> tuple[Selection, BackwardViews, SelectionKernel | None]:
-        kernel: list[SelectionKernel | None] = [None]
+        """The selection of ``rays``, its backward views and its kernel if still to run (made here)."""
+        kernel = None
 
         def make() -> Selection:
+            nonlocal kernel
             if not plans:
                 plans.append(make_plan(rt, *geometry, view.viewmat, view.K, view.width, view.height, view.near,
                                        view.far))
-            sel, kernel[0] = deferred_select(plans[0], view.sampler, max(view.k, 1), rays)
+            sel, kernel = deferred_select(plans[0], view.sampler, max(view.k, 1), rays)
             return sel
         if cache is None:
-            return make(), BackwardViews(), kernel[0]
+            return make(), BackwardViews(), kernel
         key = selection_key(*geometry, view.viewmat, view.K, view.width, view.height, view.near, view.far,
                             view.sampler, view.k, rays)
         sel = cache.get(key, make)
-        return sel, cache.backward_views(key) or BackwardViews(), kernel[0]
+        return sel, cache.backward_views(key) or BackwardViews(), kernel
 
     def splats_of(plan: RasterPlan) -> Splats2D:
         if not made:
