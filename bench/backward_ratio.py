@@ -30,8 +30,7 @@ def measure_install(args) -> dict:
     from qr_cl.app.process import cap_kernel_threads
     cap_kernel_threads()
     from qr_cl.app.scenes.procedural import dense_room
-    from qr_cl.render import rasterize_plan
-    from qr_cl.render.selfcheck import checked_runtime
+    from qr_cl.render import checked_runtime, rasterize_plan
     from qr_cl.runtime import channel_layout, padded_rows, to_device
     from qr_cl.stages import blend_backward, blend_forward, select
 

@@ -27,7 +27,7 @@ warnings.simplefilter("ignore")
 
 def exp_neg_source(rounding: str) -> str:
     """common.h's DEFINE_EXP_NEG with ``rounding`` "magic" (as it is) or "rint"."""
-    from qr_cl.runtime.device import kernel_source
+    from qr_cl.runtime import kernel_source
     header = kernel_source("select.cl")
     define = re.search(r"#define DEFINE_EXP_NEG\(.*?\n    }\n", header, re.S).group(0)
     if rounding == "rint":

@@ -51,8 +51,8 @@ def write(work: Path, phase: str, result: dict) -> None:
 
 def device_info() -> dict:
     """The device qr-cl renders on and the limits that shape its launches."""
-    from qr_cl.render.selfcheck import checked_runtime
-    from qr_cl.runtime.device import implementation
+    from qr_cl.render import checked_runtime
+    from qr_cl.runtime import implementation
     rt = checked_runtime()
     d = rt.device
     return {"device": implementation(d), "name": d.name.strip(), "kind": "GPU" if rt.gpu_shaped else "CPU",
@@ -70,7 +70,7 @@ def phase_devices(args) -> dict:
 
 def phase_parity(args) -> dict:
     from qr_cl.app.bench.parity import FLIPPED_ROWS, differences, render_scenes, sample_rows
-    from qr_cl.render.selfcheck import render_check
+    from qr_cl.render import render_check
     import numpy as np
     scenes = ["random"] if args.tiny else ["random", "fox", "donut", "dense"]
     if not args.tiny and args.data is None:

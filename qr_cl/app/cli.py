@@ -13,11 +13,9 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from ..render import render_volume_fused
-from ..render.selfcheck import check_in_child
-from ..runtime import (BufferLimitError, HostMemoryError, NoDeviceError, choose_device, list_devices, loop_limit,
-                       trial_run)
-from ..runtime.device import implementation, self_check_enabled
+from ..render import check_in_child, render_volume_fused
+from ..runtime import (BufferLimitError, HostMemoryError, NoDeviceError, choose_device, implementation, list_devices,
+                       loop_limit, self_check_enabled, trial_run)
 from ..scene import SceneFormatError, load_cameras, load_layout_instance, load_scene, orbit_cameras
 from .arguments import AXES, OneLineParser, nonnegative_int, positive_int
 from .training.network import CheckpointError

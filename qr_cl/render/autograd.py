@@ -6,7 +6,7 @@ A render of one camera with gradients w.r.t. the Gaussians is two Functions, wit
 tensors between them: :class:`ProjectFunction` (means, quats, scales, viewmat -> means2d, conics,
 depths of the plan's splats) and :class:`RasterFunction` (means2d, conics, opacities, features,
 background -> image, alpha through a Selection, which is piecewise constant in the geometry).
-:class:`SHColours`: the colour stage (sh.cl), with gradients w.r.t. SH coefficients, means and the
+:class:`SHColors`: the color stage (sh.cl), with gradients w.r.t. SH coefficients, means and the
 camera centre.
 """
 from __future__ import annotations
@@ -17,15 +17,11 @@ from typing import Callable
 import numpy as np
 import torch
 
-from ..runtime import (channel_layout, check_channels, device_empty, device_rows, host_empty, row_parts, shared_array,
-                       table_parts, to_device)
-from ..stages.binning import RasterPlan
-from ..stages.blend import (blend_backward, blend_backward_alpha, blend_forward, rows_to_half, splat_backward,
-                            weight_grads)
-from ..stages.project import project_backward
-from ..stages.select import Selection
-from ..stages.sh import sh_backward, sh_colors
-from .selfcheck import checked_runtime
+from ..runtime import (Runtime, channel_layout, check_channels, device_empty, device_rows, host_empty, row_parts,
+                       shared_array, table_parts, to_device)
+from ..stages import (BackwardViews, RasterPlan, Selection, SelectionKernel, blend_backward, blend_backward_alpha,
+                      blend_forward, project_backward, rows_to_half, sh_backward, sh_colors, splat_backward,
+                      weight_grads)
 
 
 def host_rows(tensor: torch.Tensor) -> np.ndarray:
@@ -68,24 +64,31 @@ class BlendFunction(torch.autograd.Function):
     backward is :func:`blend_backward` (deterministic: a fixed sum order per Gaussian); the
     background gets its gradient sum_p t_rem[p] dImage[p]. The selection gets none. A float16
     table gives a float32 image and a float16 gradient (summed in float32, then rounded).
+    ``views``: the selection's :class:`~qr_cl.stages.BackwardViews`, kept with it by the caller
+    (None: the Function keeps its own).
     """
 
     @staticmethod
-    def forward(ctx, features: torch.Tensor, selection: Selection, background: torch.Tensor | None):
+    def forward(ctx, features: torch.Tensor, selection: Selection, background: torch.Tensor | None,
+                views: BackwardViews | None):
         ctx.selection, ctx.channels, ctx.dtype = selection, features.shape[1], features.dtype
+        ctx.views = BackwardViews() if views is None else views
         return _blend_image(selection, features, background)
 
     @staticmethod
     def backward(ctx, grad_image: torch.Tensor):
         sel = ctx.selection
-        d_features = _feature_grad(sel, grad_image, ctx.channels, ctx.dtype) if ctx.needs_input_grad[0] else None
+        d_features = _feature_grad(sel, grad_image, ctx.channels, ctx.dtype, ctx.views) \
+            if ctx.needs_input_grad[0] else None
         d_background = _background_grad(sel, grad_image) if ctx.needs_input_grad[2] else None
-        return d_features, None, d_background
+        return d_features, None, d_background, None
 
 
-def _blend_image(sel: Selection, features: torch.Tensor, background: torch.Tensor | None) -> torch.Tensor:
+def _blend_image(sel: Selection, features: torch.Tensor, background: torch.Tensor | None,
+                 kernel: SelectionKernel | None = None) -> torch.Tensor:
     """image [P,C] (:func:`image_dtype`) of a Selection, written in place into a pooled host array:
-    the blend of each row part of the table added up, the background with the first."""
+    the blend of each row part of the table added up, the background with the first (with the
+    selection's ``kernel`` fused in when it is still to run: :func:`blend_forward`)."""
     rt = sel.plan.runtime
     channels = features.shape[1]
     cstride = channel_layout(channels)[2]
@@ -94,11 +97,13 @@ def _blend_image(sel: Selection, features: torch.Tensor, background: torch.Tenso
     host, image = _output(sel.n_rays, channels, cstride)
     with shared_array(rt, host, "w") as out:
         for r0, rows in table_parts(rt, table, cstride):
-            blend_forward(sel, rows, channels, None if r0 else bg, out=out, row0=r0, accumulate=r0 > 0)
+            blend_forward(sel, rows, channels, None if r0 else bg, out=out, row0=r0, accumulate=r0 > 0,
+                          kernel=None if r0 else kernel)
     return image.to(image_dtype(features))
 
 
-def _feature_grad(sel: Selection, grad_image: torch.Tensor, channels: int, dtype: torch.dtype) -> torch.Tensor:
+def _feature_grad(sel: Selection, grad_image: torch.Tensor, channels: int, dtype: torch.dtype,
+                  views: BackwardViews) -> torch.Tensor:
     """dL/dfeatures [N,C] in ``dtype`` (the features') by the deterministic blend_backward, summed
     in float32 rows (a row part at a time where they exceed a device buffer); for a float16 table
     rounded on the device (rows_to_half) into the returned array."""
@@ -110,9 +115,10 @@ def _feature_grad(sel: Selection, grad_image: torch.Tensor, channels: int, dtype
         for r0, r1 in row_parts(rt, sel.n_gaussians, cstride):
             with shared_array(rt, host[r0:r1], "w") as out:
                 if half:
-                    rows_to_half(rt, blend_backward(sel, dimage, channels, row0=r0, n_rows=r1 - r0), out)
+                    rows_to_half(rt, blend_backward(sel, dimage, channels, row0=r0, n_rows=r1 - r0, views=views),
+                                 out)
                 else:
-                    blend_backward(sel, dimage, channels, out=out, row0=r0, n_rows=r1 - r0)
+                    blend_backward(sel, dimage, channels, out=out, row0=r0, n_rows=r1 - r0, views=views)
     return d.to(dtype)
 
 
@@ -121,17 +127,19 @@ def _background_grad(sel: Selection, grad_image: torch.Tensor) -> torch.Tensor:
     return torch.from_numpy(sel.t_rem.get()[:sel.n_rays]).to(grad_image.dtype) @ grad_image
 
 
-def blend(selection: Selection, features: torch.Tensor, background: torch.Tensor | None = None) -> torch.Tensor:
+def blend(selection: Selection, features: torch.Tensor, background: torch.Tensor | None = None,
+          views: BackwardViews | None = None) -> torch.Tensor:
     """Differentiable blend: features [N,C] float tensor (C in 1..2048) -> image [P,C] (rays of the
     selection; for the whole image row p = y * width + x). Computed in float32 on the device (a
     float16 table read as half) and returned in features' dtype, at least float32. Gradients flow
-    to features (in their dtype) and background only."""
+    to features (in their dtype) and background only. ``views``: what the backward reads of the
+    selection, kept by the caller (e.g. made ahead by :func:`qr_cl.stages.prepare_backward`)."""
     if features.ndim != 2 or features.shape[0] != selection.n_gaussians:
         raise ValueError(f"features must be [{selection.n_gaussians}, C], got {tuple(features.shape)}")
     check_channels(features.shape[1])
     if background is not None and tuple(background.shape) != (features.shape[1],):
         raise ValueError(f"background must be [{features.shape[1]}], got {tuple(background.shape)}")
-    return BlendFunction.apply(features, selection, background)
+    return BlendFunction.apply(features, selection, background, views)
 
 
 @dataclass(frozen=True)
@@ -219,19 +227,21 @@ class RasterFunction(torch.autograd.Function):
     the absolute per-pixel dL/dmean2d [N,2] (gsplat's absgrad) whenever means2d gets a gradient.
     The selection is piecewise constant in the geometry and gets no gradient; for the K samplers
     alpha is returned detached (it is the walk's T, over Gaussians the selection does not keep),
-    and so it is when the splats need no gradient.
+    and so it is when the splats need no gradient. ``views``: the selection's
+    :class:`~qr_cl.stages.BackwardViews`, kept by the caller; ``kernel``: the selection's kernel
+    when it is still to run, fused with this blend (:func:`qr_cl.stages.blend_forward`).
     """
 
     @staticmethod
     def forward(ctx, means2d: torch.Tensor | None, conics: torch.Tensor | None, opacities: torch.Tensor,
                 features: torch.Tensor, background: torch.Tensor | None, selection: Selection,
-                absgrad: AbsGradSink | None):
-        image = _blend_image(selection, features, background)
+                absgrad: AbsGradSink | None, views: BackwardViews, kernel: SelectionKernel | None):
+        image = _blend_image(selection, features, background, kernel)
         t_walk = selection.t_walk.get()[:selection.n_rays]
         alpha = torch.from_numpy(1 - t_walk[:, None]).to(image.dtype)
         if selection.sampler != "volume" or not any(ctx.needs_input_grad[:3]):   # alpha is the geometry's
             ctx.mark_non_differentiable(alpha)
-        ctx.selection, ctx.absgrad = selection, absgrad
+        ctx.selection, ctx.absgrad, ctx.views = selection, absgrad, views
         ctx.save_for_backward(features, background)
         return image, alpha
 
@@ -241,19 +251,19 @@ class RasterFunction(torch.autograd.Function):
         features, background = ctx.saved_tensors
         splat_grads = [None] * 3
         if any(ctx.needs_input_grad[:3]):
-            d_splats = _splat_grads(sel, features, background, grad_image, grad_alpha)
+            d_splats = _splat_grads(sel, features, background, grad_image, grad_alpha, ctx.views)
             splat_grads = [_to_tensor(d_splats[:, cols], grad_image) if need else None
                            for cols, need in zip((slice(0, 2), slice(2, 5), 5), ctx.needs_input_grad[:3])]
             if ctx.absgrad is not None and ctx.needs_input_grad[0]:
                 ctx.absgrad(d_splats[:, 6:8])
-        d_features = _feature_grad(sel, grad_image, features.shape[1], features.dtype) \
+        d_features = _feature_grad(sel, grad_image, features.shape[1], features.dtype, ctx.views) \
             if ctx.needs_input_grad[3] else None
         d_background = _background_grad(sel, grad_image) if ctx.needs_input_grad[4] else None
-        return (*splat_grads, d_features, d_background, None, None)
+        return (*splat_grads, d_features, d_background, None, None, None, None)
 
 
 def _splat_grads(sel: Selection, features: torch.Tensor, background: torch.Tensor | None,
-                 grad_image: torch.Tensor, grad_alpha: torch.Tensor | None) -> np.ndarray:
+                 grad_image: torch.Tensor, grad_alpha: torch.Tensor | None, views: BackwardViews) -> np.ndarray:
     """dL/dsplats [N,8] float32 on the host (d mean2d x, y; d conic A, B, C; d opacity; the sums of
     |d mean2d x|, |d mean2d y| over the entries) of :class:`RasterFunction`: weight_grads of each
     row part of the table -> blend_backward_alpha -> splat_backward."""
@@ -273,17 +283,17 @@ def _splat_grads(sel: Selection, features: torch.Tensor, background: torch.Tenso
     with device_rows(rt, host_rows(grad_image), cstride) as dimage:
         for r0, rows in table_parts(rt, table, cstride):
             weight_grads(sel, rows, dimage, channels, row0=r0, out=d_w)
-    return splat_backward(sel, blend_backward_alpha(sel, d_w, d_trem)).get()
+    return splat_backward(sel, blend_backward_alpha(sel, d_w, d_trem), views).get()
 
 
-class SHColours(torch.autograd.Function):
+class SHColors(torch.autograd.Function):
     """RGB [N,3] = max(SH(dir) . sh + 0.5, 0) of SH coefficients sh [N,(d+1)^2,3] (d <= 3), dir =
-    normalize(means [N,3] - campos [3]), by sh.cl; backward by its ``sh_backward`` kernel to sh
-    and means, and to the camera centre campos (minus the sum of the means' share, in float64)."""
+    normalize(means [N,3] - campos [3]), by sh.cl on the runtime ``rt``; backward by its
+    ``sh_backward`` kernel to sh and means, and to the camera centre campos (minus the sum of the
+    means' share, in float64)."""
 
     @staticmethod
-    def forward(ctx, means: torch.Tensor, sh: torch.Tensor, campos: torch.Tensor):
-        rt = checked_runtime()
+    def forward(ctx, means: torch.Tensor, sh: torch.Tensor, campos: torch.Tensor, rt: Runtime):
         means_dev = to_device(rt, host_rows(means))
         sh_host = np.ascontiguousarray(sh.detach().to("cpu", torch.float32).numpy())
         centre = campos.detach().to("cpu", torch.float32).numpy()
@@ -299,4 +309,4 @@ class SHColours(torch.autograd.Function):
         d_campos = None
         if ctx.needs_input_grad[2]:
             d_campos = torch.from_numpy(-d_means.astype(np.float64).sum(0)).to(ctx.campos_dtype)
-        return torch.from_numpy(d_means).to(grad_rgb.dtype), torch.from_numpy(d_sh).to(grad_rgb.dtype), d_campos
+        return torch.from_numpy(d_means).to(grad_rgb.dtype), torch.from_numpy(d_sh).to(grad_rgb.dtype), d_campos, None

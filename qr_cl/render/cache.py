@@ -8,7 +8,7 @@ from typing import Callable, Hashable
 
 import numpy as np
 
-from ..stages.select import Selection
+from ..stages import BackwardViews, Selection
 
 
 def selection_key(*arrays_and_values) -> str:
@@ -31,7 +31,9 @@ class SelectionCache:
     (:func:`qr_cl.rasterize`), or e.g. (scene, view, sampler, K) (training's whole-view selections).
 
     Selections depend on geometry, camera, sampler and K only, so training can reuse one per view
-    every epoch. :meth:`get` evicts the least recently used; :meth:`get_if_room` evicts nothing.
+    every epoch. Each entry keeps, beside its Selection, the selection's
+    :class:`~qr_cl.stages.BackwardViews` (:meth:`backward_views`: what backwards of it make once
+    and share), counted in its bytes. :meth:`get` evicts the least recently used; :meth:`get_if_room` evicts nothing.
     A Selection larger than ``max_bytes`` is returned but not kept. Cache-free rendering (no cache
     passed to :func:`qr_cl.rasterize`) is the default.
     """
@@ -40,25 +42,25 @@ class SelectionCache:
         if max_bytes <= 0:
             raise ValueError(f"max_bytes must be positive, got {max_bytes}")
         self.max_bytes = int(max_bytes)
-        self._entries: OrderedDict[Hashable, Selection] = OrderedDict()
+        self._entries: OrderedDict[Hashable, tuple[Selection, BackwardViews]] = OrderedDict()
         self._last_size = 0
         self.hits = self.misses = 0
 
     @staticmethod
-    def _size(sel: Selection) -> int:
-        return sel.nbytes + sel.plan.nbytes
+    def _size(sel: Selection, views: BackwardViews | None = None) -> int:
+        return sel.nbytes + sel.plan.nbytes + (0 if views is None else views.nbytes)
 
     @property
     def nbytes(self) -> int:
         """Device bytes held now."""
-        return sum(self._size(sel) for sel in self._entries.values())
+        return sum(self._size(sel, views) for sel, views in self._entries.values())
 
     def _hit(self, key: Hashable) -> Selection | None:
         """The Selection kept under ``key`` (now the most recently used), counting the hit or miss."""
         if key in self._entries:
             self.hits += 1
             self._entries.move_to_end(key)
-            return self._entries[key]
+            return self._entries[key][0]
         self.misses += 1
         return None
 
@@ -77,7 +79,7 @@ class SelectionCache:
         if size <= self.max_bytes:
             while self._entries and self.nbytes + size > self.max_bytes:
                 self._entries.popitem(last=False)
-            self._entries[key] = sel
+            self._entries[key] = (sel, BackwardViews())
         return sel
 
     def get_if_room(self, key: Hashable, make: Callable[[], Selection]) -> Selection | None:
@@ -90,8 +92,15 @@ class SelectionCache:
             return sel
         sel, size = self._make(make)
         if self.nbytes + size <= self.max_bytes:
-            self._entries[key] = sel
+            self._entries[key] = (sel, BackwardViews())
         return sel
+
+    def backward_views(self, key: Hashable) -> BackwardViews | None:
+        """The :class:`~qr_cl.stages.BackwardViews` kept with the Selection under ``key`` (None
+        when none is kept): pass them to its backward (the engine does), so that its transpose and
+        owner bounds are made once."""
+        entry = self._entries.get(key)
+        return None if entry is None else entry[1]
 
     def __len__(self) -> int:
         return len(self._entries)

@@ -4,7 +4,7 @@ gradients w.r.t. the features, the background and the Gaussians (through gsplat'
 
 :func:`qr_cl.rasterize` and :func:`qr_cl.rasterization` are adapters of their argument conventions
 over :func:`render_view`; both therefore check inputs the same way (:func:`gaussian_tensors`),
-colour from SH by the same kernel (:func:`sh_colours`), and split renders that exceed the
+color from SH by the same kernel (:func:`sh_colors`), and split renders that exceed the
 device's largest buffer into sets of rays the same way (feature tables larger than a buffer are
 taken in row parts by the blend itself: :mod:`qr_cl.render.autograd`).
 """
@@ -15,13 +15,13 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ..runtime import BufferLimitError, Runtime, channel_layout, check_channels, trim_device_pool
-from ..stages.binning import RasterPlan
-from ..stages.select import Selection, entry_bytes, select
-from .autograd import AbsGradSink, ProjectFunction, RasterFunction, SHColours, View, host_rows
+from ..runtime import (BufferLimitError, Runtime, channel_layout, check_buffer, check_channels, host_empty, table_parts,
+                       trim_device_pool)
+from ..stages import (BackwardViews, RasterPlan, Selection, SelectionKernel, deferred_select, entry_bytes,
+                      render_fused)
+from .autograd import AbsGradSink, ProjectFunction, RasterFunction, SHColors, View, host_rows, table_rows
 from .cache import SelectionCache, selection_key
-from .plan import rasterize_plan
-from .selfcheck import checked_runtime
+from .plan import make_plan
 
 
 def _tensor(x) -> torch.Tensor:
@@ -75,11 +75,12 @@ def camera_centre(viewmat: np.ndarray | torch.Tensor) -> torch.Tensor:
     return -(view[:3, :3].T @ view[:3, 3])
 
 
-def sh_colours(sh, means: torch.Tensor, viewmat: np.ndarray | torch.Tensor, sh_degree: int) -> torch.Tensor:
-    """The colour stage: view-dependent RGB [N,3] from SH coefficients [N,K,3] (the first
-    (sh_degree+1)^2 of K, sh_degree <= 3) by sh.cl, differentiable w.r.t. the coefficients, the
-    means and (a tensor viewmat [4,4]) the camera (gsplat's convention: max(SH(dir) . c + 0.5, 0),
-    dir from the camera centre)."""
+def sh_colors(sh, means: torch.Tensor, viewmat: np.ndarray | torch.Tensor, sh_degree: int,
+              rt: Runtime) -> torch.Tensor:
+    """The color stage: view-dependent RGB [N,3] from SH coefficients [N,K,3] (the first
+    (sh_degree+1)^2 of K, sh_degree <= 3) by sh.cl on ``rt``, differentiable w.r.t. the
+    coefficients, the means and (a tensor viewmat [4,4]) the camera (gsplat's convention:
+    max(SH(dir) . c + 0.5, 0), dir from the camera centre)."""
     sh = _tensor(sh)
     need = (sh_degree + 1) ** 2
     if sh.ndim != 3 or sh.shape[0] != means.shape[0] or sh.shape[2] != 3 or sh.shape[1] < need or sh_degree > 3:
@@ -87,7 +88,7 @@ def sh_colours(sh, means: torch.Tensor, viewmat: np.ndarray | torch.Tensor, sh_d
                          f"got {tuple(sh.shape)}")
     if sh.shape[0] == 0:
         return sh.new_zeros(0, 3)
-    return SHColours.apply(means, sh[:, :need], camera_centre(viewmat))
+    return SHColors.apply(means, sh[:, :need], camera_centre(viewmat), rt)
 
 
 def image_pixels(width: int, height: int) -> np.ndarray:
@@ -138,15 +139,16 @@ class Splats2D:
 
 
 def project_view(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
-                 views: list[View], viewmats: torch.Tensor | None = None, plans: list[RasterPlan] | None = None
-                 ) -> tuple[list[RasterPlan], torch.Tensor, torch.Tensor, torch.Tensor]:
+                 views: list[View], viewmats: torch.Tensor | None = None, plans: list[RasterPlan] | None = None,
+                 rt: Runtime | None = None) -> tuple[list[RasterPlan], torch.Tensor, torch.Tensor, torch.Tensor]:
     """The projection of C cameras as gsplat's tensors: (plans, means2d [C,N,2] px, conics [C,N,3],
     depths [C,N] camera z; zeros for culled Gaussians) of the Gaussians (N >= 1, unit quats,
     activated opacities [N]) for ``views``, differentiable w.r.t. means, quats, scales and
     ``viewmats`` (a [C,4,4] tensor with the views' values; None = no camera gradient).
-    ``plans``: the views' projections if already made (their splats are read), else they are."""
-    plans = plans or [rasterize_plan(*(host_rows(t) for t in (means, quats, scales, opacities)), view.viewmat,
-                                     view.K, view.width, view.height, view.near, view.far) for view in views]
+    ``plans``: the views' projections if already made (their splats are read), else they are, on
+    ``rt``."""
+    plans = plans or [make_plan(rt, *(host_rows(t) for t in (means, quats, scales, opacities)), view.viewmat,
+                                view.K, view.width, view.height, view.near, view.far) for view in views]
     view_t = torch.from_numpy(np.stack([view.viewmat for view in views])) if viewmats is None else viewmats
     return (plans, *ProjectFunction.apply(means, quats, scales, view_t, plans, views))
 
@@ -160,7 +162,7 @@ def render_view(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, 
                 features: torch.Tensor, background: torch.Tensor | None, view: View,
                 cache: SelectionCache | None = None, viewmat: torch.Tensor | None = None,
                 splats: Splats2D | None = None, absgrad: AbsGradSink | None = None,
-                extra: torch.Tensor | None = None) -> Render:
+                extra: torch.Tensor | None = None, *, rt: Runtime) -> Render:
     """Render features [N,C] of the Gaussians (from :func:`gaussian_tensors`, unit quats) for
     ``view``: plan, then per set of rays (:func:`ray_sets`) select and blend through
     :class:`~qr_cl.render.autograd.RasterFunction` (in row parts where the table exceeds a device
@@ -173,28 +175,40 @@ def render_view(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, 
     stage made by the caller (gsplat's meta tensors: the plan and tensors whose gradients the
     caller reads); by default it is made here from the first selection's plan, through
     :class:`~qr_cl.render.autograd.ProjectFunction` when a gradient w.r.t. the geometry is
-    wanted. ``absgrad`` receives each blend's sums of |dL/dmean2d| [N,2] in the backward."""
+    wanted. ``absgrad`` receives each blend's sums of |dL/dmean2d| [N,2] in the backward. ``rt``:
+    the runtime to render on (the public calls pass the checked one: :mod:`qr_cl.render.selfcheck`).
+
+    A selection made here (not found in ``cache``) is made by its first blend, the selection kernel
+    with the blend fused in (:func:`qr_cl.stages.deferred_select`): an explicit step of
+    :func:`_render_rays`. Its backward views (transpose, owner bounds) are kept with it: in the
+    cache's entry, or by the autograd Functions of this render."""
     n, channels = means.shape[0], features.shape[1]
     n_rays = view.width * view.height if view.pixels is None else len(view.pixels)
     if n == 0:
         bg = torch.zeros(channels) if background is None else background.detach()
         return Render(bg.expand(n_rays, channels).clone(), torch.zeros(n_rays, 1), None, [],
                       None if extra is None else torch.zeros(n_rays, extra.shape[1]))
-    rt = checked_runtime()
     geometry = [host_rows(t) for t in (means, quats, scales, opacities)]
     plans: list[RasterPlan] = [] if splats is None else [splats.plan]
     made: list[Splats2D] = [] if splats is None else [splats]
 
-    def selection(rays: np.ndarray | None) -> Selection:
+    def selection(rays: np.ndarray | None) -> tuple[Selection, BackwardViews, SelectionKernel | None]:
+        """The selection of ``rays``, its backward views and its kernel if still to run (made here)."""
+        kernel = None
+
         def make() -> Selection:
+            nonlocal kernel
             if not plans:
-                plans.append(rasterize_plan(*geometry, view.viewmat, view.K, view.width, view.height, view.near,
-                                            view.far, rt=rt))
-            return select(plans[0], view.sampler, max(view.k, 1), rays, defer=True)   # made by the first blend
+                plans.append(make_plan(rt, *geometry, view.viewmat, view.K, view.width, view.height, view.near,
+                                       view.far))
+            sel, kernel = deferred_select(plans[0], view.sampler, max(view.k, 1), rays)
+            return sel
         if cache is None:
-            return make()
-        return cache.get(selection_key(*geometry, view.viewmat, view.K, view.width, view.height, view.near,
-                                       view.far, view.sampler, view.k, rays), make)
+            return make(), BackwardViews(), kernel
+        key = selection_key(*geometry, view.viewmat, view.K, view.width, view.height, view.near, view.far,
+                            view.sampler, view.k, rays)
+        sel = cache.get(key, make)
+        return sel, cache.backward_views(key) or BackwardViews(), kernel
 
     def splats_of(plan: RasterPlan) -> Splats2D:
         if not made:
@@ -218,13 +232,38 @@ def render_view(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, 
     return Render(images[0], alpha, sels[0].plan, sels, images[1] if extra is not None else None)
 
 
+def fused_volume(rt: Runtime, means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
+                 opacities: torch.Tensor, features: torch.Tensor, background: torch.Tensor | None,
+                 viewmat: np.ndarray, K: np.ndarray, width: int, height: int, near: float = 0.01,
+                 far: float = 1e10) -> tuple[torch.Tensor, torch.Tensor, RasterPlan, np.ndarray]:
+    """The fused V-Render of a whole image on ``rt`` (:func:`qr_cl.render_volume_fused` once its
+    arguments are checked): Gaussians from :func:`gaussian_tensors` (N >= 1), features [N,C] and
+    background [C] or None tensors, viewmat [4,4] and K [3,3] float32, width/height in px. Returns
+    image [H,W,C] and alpha [H,W,1] tensors, the plan and the expected depth [H,W,1]. A table
+    larger than the device's largest buffer is rendered a row part at a time (their blends added)."""
+    channels = features.shape[1]
+    plan = make_plan(rt, *(host_rows(t) for t in (means, quats, scales, opacities)), viewmat, K, width, height, near,
+                     far)
+    cstride = channel_layout(channels)[2]
+    check_buffer(rt, 4 * height * width * cstride, f"the fused V-Render image of {width}x{height} "
+                 f"px x {cstride} channels (rasterize(..., sampler='volume') renders it in chunks)")
+    table, out = table_rows(features), host_empty((height, width, cstride))
+    for r0, rows in table_parts(rt, table, cstride):           # a table beyond a buffer: row parts
+        image, alpha, depth = render_fused(plan, rows, channels, None if r0 or background is None else
+                                           background.numpy(), out=out, row0=r0, accumulate=r0 > 0)
+    trim_device_pool(rt)
+    return torch.from_numpy(image), torch.from_numpy(alpha), plan, depth
+
+
 def _render_rays(selection, splats_of, rays: np.ndarray | None, view: View, tables: list[tuple],
                  absgrad: AbsGradSink | None) -> list[tuple]:
     """(Selection, [image [P,C] of each feature table], alpha [P,1]) of the rays ``rays`` (None =
     the whole image), tables being (features [N,C], background [C] or None): one entry, or several
-    when a selection does not fit in a device buffer and the rays are halved."""
+    when a selection does not fit in a device buffer and the rays are halved. A selection still to
+    be made is made by the first table's blend, its kernel fused in; if that blend fails, by its
+    kernel alone (a cache may keep the selection)."""
     try:
-        sel = selection(rays)
+        sel, views, kernel = selection(rays)
     except BufferLimitError:
         if rays is not None and len(rays) < 2:
             raise
@@ -232,10 +271,13 @@ def _render_rays(selection, splats_of, rays: np.ndarray | None, view: View, tabl
         half = len(rays) // 2
         return (_render_rays(selection, splats_of, rays[:half], view, tables, absgrad)
                 + _render_rays(selection, splats_of, rays[half:], view, tables, absgrad))
+    outs = []
     try:
         s2d = splats_of(sel.plan)
-        outs = [RasterFunction.apply(s2d.means2d, s2d.conics, s2d.opacities, features, background, sel, absgrad)
-                for features, background in tables]
+        for features, background in tables:
+            outs.append(RasterFunction.apply(s2d.means2d, s2d.conics, s2d.opacities, features, background, sel,
+                                             absgrad, views, None if outs else kernel))
     finally:
-        sel.ready()                          # made even if no blend ran (it may be cached)
+        if kernel is not None and not outs:
+            kernel.run()                     # made even if no blend ran (it may be cached)
     return [(sel, [image for image, _ in outs], outs[0][1])]

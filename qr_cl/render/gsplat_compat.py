@@ -1,5 +1,5 @@
 """A gsplat-compatible, differentiable rasterizer: :func:`rasterization` takes gsplat's argument
-names, shapes and conventions (batched cameras, SH or colours, render modes, backgrounds, packed or
+names, shapes and conventions (batched cameras, SH or colors, render modes, backgrounds, packed or
 dense meta) and returns what gsplat returns, with gradients w.r.t. the Gaussians, the cameras'
 viewmats and gsplat's 2-D tensors (``meta["means2d"].grad``, ``.absgrad``: what densification
 strategies read), and Q-Render / top-K as samplers; :func:`rasterize_top_contributing_gaussian_ids`
@@ -18,10 +18,9 @@ import numpy as np
 import torch
 
 from ..runtime import ALPHA_MIN, TILE, device_zeros, to_device
-from ..stages.binning import RasterPlan
-from ..stages.select import check_sampler, select
+from ..stages import RasterPlan, check_sampler, select
 from .autograd import AbsGradSink, View
-from .engine import Render, Splats2D, gaussian_tensors, project_view, render_view, sh_colours
+from .engine import Render, Splats2D, gaussian_tensors, project_view, render_view, sh_colors
 from .selfcheck import checked_runtime
 
 RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
@@ -72,8 +71,8 @@ def _with_depth(background: torch.Tensor | None, render_mode: str) -> torch.Tens
     for "D" and "ED")."""
     if background is None or render_mode == "RGB":
         return background
-    colour = background[:0] if render_mode in ("D", "ED") else background
-    return torch.cat([colour, background.new_zeros(1)])
+    color = background[:0] if render_mode in ("D", "ED") else background
+    return torch.cat([color, background.new_zeros(1)])
 
 
 def _absgrad_sink(target: torch.Tensor, rows: int | slice, ids: torch.Tensor | None) -> AbsGradSink:
@@ -232,7 +231,7 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
             Gaussian) pairs that are not culled, with ``camera_ids`` and ``gaussian_ids`` [nnz];
             False: [C, N, ...] (culled Gaussians have radii 0). The images are the same.
         backgrounds: [C,D] or None (black); depth channels get background 0.
-        render_mode: "RGB" (the D colour channels), "D" (accumulated depth sum_i w_i z_i), "ED"
+        render_mode: "RGB" (the D color channels), "D" (accumulated depth sum_i w_i z_i), "ED"
             (expected depth, D / alpha), "RGB+D", "RGB+ED" (depth as the last channel).
         absgrad: gsplat's AbsGS option: after backward, ``meta["means2d"].absgrad`` (the shape of
             meta["means2d"]) holds per Gaussian the sum over the pixels (the selection's entries)
@@ -244,10 +243,10 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
         sampler, k (qr-cl's own): "volume" (gsplat's alpha blending, the default), "quantile"
             (Q-Render with K = k), "topk" or "stratified" (see :func:`qr_cl.rasterize`).
         extra_signals (qr-cl's own): [N,F] or [C,N,F] per-Gaussian signals (e.g. 512-D features,
-            F in 1..2048) blended through the colours' selection (one plan, one selection walk per
+            F in 1..2048) blended through the colors' selection (one plan, one selection walk per
             ray, then a blend of their own): returned as ``meta["render_extra_signals"]``
-            [C,H,W,F] (background 0), differentiable as the colours are (with absgrad, the
-            colours' and the signals' per-pixel terms are added in absolute value apart).
+            [C,H,W,F] (background 0), differentiable as the colors are (with absgrad, the
+            colors' and the signals' per-pixel terms are added in absolute value apart).
         The other gsplat arguments are accepted only at the values in :data:`UNSUPPORTED`.
 
     Returns:
@@ -271,7 +270,7 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
     samplers the selection is piecewise constant in the geometry and render_alphas carries no
     gradient. Ks get no gradient (Ks that require one raise a ValueError). Each camera renders
     through :func:`qr_cl.render.engine.render_view`, as :func:`qr_cl.rasterize` does: the same
-    colour stage (sh.cl) and the same splitting of renders larger than the device's largest
+    color stage (sh.cl) and the same splitting of renders larger than the device's largest
     buffer.
     """
     _check_options(dict(radius_clip=radius_clip, eps2d=eps2d, tile_size=tile_size, sparse_grad=sparse_grad,
@@ -290,6 +289,7 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
         raise ValueError("gradients w.r.t. Ks (camera intrinsics) are not implemented, as in gsplat; pass Ks "
                          "detached (viewmats may require grad)")
     n = means.shape[0]
+    rt = checked_runtime()
     per_colors = _per_camera(colors, n_cameras, 2 if sh_degree is None else 3,
                              "colors" if sh_degree is None else f"colors (SH coefficients, sh_degree={sh_degree})")
     per_extra = [None] * n_cameras if extra_signals is None else _per_camera(extra_signals, n_cameras, 2,
@@ -304,7 +304,7 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
                   int(width), int(height), float(near_plane), float(far_plane), sampler, k)
              for c in range(n_cameras)]
     if n:
-        plans, means2d, conics, depths = project_view(means, quats, scales, opacities, views, view_t)
+        plans, means2d, conics, depths = project_view(means, quats, scales, opacities, views, view_t, rt=rt)
     else:
         plans, means2d, conics, depths = (None, means.new_zeros(n_cameras, 0, 2), means.new_zeros(n_cameras, 0, 3),
                                           means.new_zeros(n_cameras, 0))
@@ -313,12 +313,12 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
     for c in range(n_cameras):
         features = None
         if render_mode not in ("D", "ED"):
-            features = per_colors[c] if sh_degree is None else sh_colours(per_colors[c], means, view_t[c], sh_degree)
+            features = per_colors[c] if sh_degree is None else sh_colors(per_colors[c], means, view_t[c], sh_degree, rt)
         if render_mode != "RGB":
             features = depths[c][:, None] if features is None else torch.cat([features, depths[c][:, None]], 1)
         out = render_view(means, quats, scales, opacities, features, per_bg[c], views[c], viewmat=view_t[c],
                           splats=splats[c] if n else None, absgrad=sinks[c],
-                          extra=None if per_extra[c] is None else per_extra[c].to("cpu", torch.float32))
+                          extra=None if per_extra[c] is None else per_extra[c].to("cpu", torch.float32), rt=rt)
         image, alpha = out.image.reshape(height, width, -1), out.alpha.reshape(height, width, 1)
         if render_mode.endswith("ED"):
             image = torch.cat([image[..., :-1], image[..., -1:] / alpha.clamp_min(1e-10)], -1)

@@ -4,21 +4,18 @@ from __future__ import annotations
 import numpy as np
 
 from ..runtime import Runtime, to_device
-from ..stages.binning import RasterPlan, bin_and_sort
-from ..stages.project import project
-from .selfcheck import checked_runtime
+from ..stages import RasterPlan, bin_and_sort, project
 
 
-def rasterize_plan(means: np.ndarray, quats: np.ndarray, scales: np.ndarray, opacities: np.ndarray,
-                   viewmat: np.ndarray, K: np.ndarray, width: int, height: int,
-                   near: float = 0.01, far: float = 1e10, rt: Runtime | None = None) -> RasterPlan:
-    """Project, bin and sort Gaussians for one camera (geometry only).
+def make_plan(rt: Runtime, means: np.ndarray, quats: np.ndarray, scales: np.ndarray, opacities: np.ndarray,
+              viewmat: np.ndarray, K: np.ndarray, width: int, height: int, near: float = 0.01,
+              far: float = 1e10) -> RasterPlan:
+    """Project, bin and sort Gaussians for one camera (geometry only) on the runtime ``rt``.
 
     means [N,3], quats [N,4] unit w,x,y,z, scales [N,3] activated, opacities [N] activated (float32
     host arrays, N >= 1); viewmat [4,4] world-to-camera; K [3,3] intrinsics in px; width/height in px.
-    Without ``rt``, the process's runtime, whose device has passed the render check.
+    The public call is :func:`qr_cl.render.rasterize_plan` (on the checked runtime by default).
     """
-    rt = rt or checked_runtime()
     dev = [to_device(rt, a) for a in (means, quats, scales, opacities)]
     proj = project(rt, *dev, viewmat, np.asarray(K), width, height, near, far)
     return RasterPlan(rt, int(width), int(height), proj.splats, proj.radii, *bin_and_sort(rt, proj, width, height))

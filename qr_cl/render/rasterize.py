@@ -1,24 +1,37 @@
-"""The public renderer in qr-cl's conventions, and the fused V-Render.
+"""The public renderer in qr-cl's conventions, the fused V-Render and the public plan call.
 
 :func:`rasterize` renders one camera through a stored Selection (any sampler, pixel subsets, a
 selection cache), an adapter over :func:`qr_cl.render.engine.render_view` (which
 :func:`qr_cl.rasterization` adapts to gsplat's conventions); :func:`render_volume_fused` is the
 fused V-Render kernel (whole images, no gradients, expected depth). Both take the same scene and
-camera arguments.
+camera arguments, and render on the runtime whose device passed the render check
+(:func:`qr_cl.render.selfcheck.checked_runtime`), as :func:`rasterize_plan` does by default.
 """
 from __future__ import annotations
 
 import numpy as np
 import torch
 
-from ..runtime import channel_layout, check_buffer, host_empty, table_parts, trim_device_pool
-from ..stages.binning import RenderMeta
-from ..stages.select import check_pixels, check_sampler
-from ..stages.vrender import render_fused
-from .autograd import View, host_rows, table_rows
+from ..runtime import Runtime
+from ..stages import RasterPlan, check_pixels, check_sampler
+from .autograd import View
 from .cache import SelectionCache
-from .engine import background_tensor, feature_tensor, gaussian_tensors, render_view, sh_colours
-from .plan import rasterize_plan
+from .engine import background_tensor, feature_tensor, fused_volume, gaussian_tensors, render_view, sh_colors
+from .meta import RenderMeta
+from .plan import make_plan
+from .selfcheck import checked_runtime
+
+
+def rasterize_plan(means: np.ndarray, quats: np.ndarray, scales: np.ndarray, opacities: np.ndarray,
+                   viewmat: np.ndarray, K: np.ndarray, width: int, height: int,
+                   near: float = 0.01, far: float = 1e10, rt: Runtime | None = None) -> RasterPlan:
+    """Project, bin and sort Gaussians for one camera (geometry only).
+
+    means [N,3], quats [N,4] unit w,x,y,z, scales [N,3] activated, opacities [N] activated (float32
+    host arrays, N >= 1); viewmat [4,4] world-to-camera; K [3,3] intrinsics in px; width/height in px.
+    Without ``rt``, the process's runtime, whose device has passed the render check.
+    """
+    return make_plan(rt or checked_runtime(), means, quats, scales, opacities, viewmat, K, width, height, near, far)
 
 
 def camera(viewmat, K) -> tuple[np.ndarray, np.ndarray]:
@@ -33,12 +46,13 @@ def camera(viewmat, K) -> tuple[np.ndarray, np.ndarray]:
     return out[0], out[1]
 
 
-def colour_features(features, sh_degree: int | None, means: torch.Tensor, viewmat: np.ndarray) -> torch.Tensor:
-    """The colour stage of qr-cl's calls: features [N,C] as given, or RGB [N,3] from SH
-    coefficients [N,K,3] when ``sh_degree`` is set."""
+def color_features(features, sh_degree: int | None, means: torch.Tensor, viewmat: np.ndarray,
+                   rt: Runtime) -> torch.Tensor:
+    """The color stage of qr-cl's calls: features [N,C] as given, or RGB [N,3] from SH
+    coefficients [N,K,3] when ``sh_degree`` is set (by sh.cl on ``rt``)."""
     if sh_degree is None:
         return feature_tensor(features, means.shape[0])
-    return sh_colours(features, means, viewmat, sh_degree)
+    return sh_colors(features, means, viewmat, sh_degree, rt)
 
 
 def empty_meta() -> dict:
@@ -61,7 +75,7 @@ def rasterize(means, quats, scales, opacities, features, viewmat, K, width: int,
         opacities [N] activated in [0,1]: torch float32 CPU tensors (numpy arrays work too).
         features: [N,C] per-Gaussian features, C in 1..2048; or, with ``sh_degree`` set,
             SH coefficients [N,(d+1)^2,3] (d >= sh_degree; the first (sh_degree+1)^2 are used)
-            evaluated per view into RGB (the colour stage, as gsplat's ``colors`` with ``sh_degree``).
+            evaluated per view into RGB (the color stage, as gsplat's ``colors`` with ``sh_degree``).
             C-contiguous float32 rows of a multiple of 16 channels are read in place on CPU
             devices; rows starting on a 64-byte line (torch's tensors) read fastest. A float16
             table (torch or numpy) is read as half and blended in float32: half the memory and
@@ -87,7 +101,7 @@ def rasterize(means, quats, scales, opacities, features, viewmat, K, width: int,
     Returns:
         render [H,W,C] (or [P,C] for ``pixels``) float32 (float64 for float64 features), alpha [H,W,1] (or [P,1]): 1 - the
         transmittance where the ray's walk stopped (for quantile the walk stops once T < 1/(K+1)),
-        and a meta mapping (a :class:`qr_cl.stages.binning.RenderMeta`: host copies made on first
+        and a meta mapping (a :class:`qr_cl.render.meta.RenderMeta`: host copies made on first
         access; a dict for no Gaussians) with means2d [N,2] (px), conics [N,3], depths [N] (camera
         z), radii [N,2] int32 (x, y half-extents in px; 0 = culled), opacities [N], tile_ranges
         [tiles,2], flatten_ids, n_keys and (for N >= 1) the ``selection`` used (:class:`qr_cl.stages.select.Selection`; a list of them,
@@ -101,7 +115,7 @@ def rasterize(means, quats, scales, opacities, features, viewmat, K, width: int,
         :class:`qr_cl.runtime.HostMemoryError`, also naming them.
 
         Compositing RGB from "quantile" (and "topk"/"stratified"): the selected weights are
-        normalized to sum to 1, so the image is the colour *given* a hit; faint edges and
+        normalized to sum to 1, so the image is the color *given* a hit; faint edges and
         floaters come out opaque (halos). Multiply it by V-Render's alpha (``sampler="volume"``
         or :func:`render_volume_fused`: 1 - final T) before compositing; the alpha a K sampler
         returns itself (1 - T where its walk stopped) needs no second walk and is a little
@@ -117,10 +131,11 @@ def rasterize(means, quats, scales, opacities, features, viewmat, K, width: int,
         pixels = check_pixels(pixels, width, height)
     gaussians = gaussian_tensors(means, quats, scales, opacities)
     viewmat, K = camera(viewmat, K)
-    feats = colour_features(features, sh_degree, gaussians[0], viewmat)
+    rt = checked_runtime()
+    feats = color_features(features, sh_degree, gaussians[0], viewmat, rt)
     bg = background_tensor(background, feats.shape[1])
     out = render_view(*gaussians, feats, bg, View(viewmat, K, int(width), int(height), near, far, sampler, k, pixels),
-                      cache)
+                      cache, rt=rt)
     shape = (height, width) if pixels is None else (len(pixels),)
     image, alpha = out.image.reshape(*shape, feats.shape[1]), out.alpha.reshape(*shape, 1)
     if out.plan is None:
@@ -143,21 +158,14 @@ def render_volume_fused(means, quats, scales, opacities, features, viewmat, K, w
     """
     gaussians = gaussian_tensors(means, quats, scales, opacities)
     viewmat, K = camera(viewmat, K)
+    rt = checked_runtime()
     with torch.no_grad():
-        feats = colour_features(features, sh_degree, gaussians[0], viewmat)
+        feats = color_features(features, sh_degree, gaussians[0], viewmat, rt)
     bg = background_tensor(background, feats.shape[1])
     channels = feats.shape[1]
     if gaussians[0].shape[0] == 0:
         image = (torch.zeros(channels) if bg is None else bg).expand(height, width, channels).clone()
         alpha = torch.zeros(height, width, 1)
         return image, alpha, {**empty_meta(), "depth": alpha.numpy().copy()}
-    plan = rasterize_plan(*(host_rows(t) for t in gaussians), viewmat, K, width, height, near, far)
-    cstride = channel_layout(channels)[2]
-    check_buffer(plan.runtime, 4 * height * width * cstride, f"the fused V-Render image of {width}x{height} "
-                 f"px x {cstride} channels (rasterize(..., sampler='volume') renders it in chunks)")
-    table, out = table_rows(feats), host_empty((height, width, cstride))
-    for r0, rows in table_parts(plan.runtime, table, cstride):           # a table beyond a buffer: row parts
-        image, alpha, depth = render_fused(plan, rows, channels, None if r0 or bg is None else bg.numpy(), out=out,
-                                           row0=r0, accumulate=r0 > 0)
-    trim_device_pool(plan.runtime)
-    return torch.from_numpy(image), torch.from_numpy(alpha), RenderMeta(plan, depth=depth)
+    image, alpha, plan, depth = fused_volume(rt, *gaussians, feats, bg, viewmat, K, width, height, near, far)
+    return image, alpha, RenderMeta(plan, depth=depth)

@@ -1,4 +1,5 @@
-"""The render check a device passes before qr-cl renders on it: a tiny scene through every
+"""The render check a device passes before qr-cl renders on it, and the accessor of the runtime
+that passed it (:func:`checked_runtime`), which the public calls render on: a tiny scene through every
 sampler (forward and feature backward), a table read in row parts (as one larger than the device's
 largest buffer is) and a float16 table through Q-Render, and the fused V-Render, against the
 float64 twins.
@@ -8,6 +9,10 @@ It catches drivers that build and run the kernels but compute something else (th
 :class:`DeviceCheckError` naming the implementation, its version and what differed. A pass is
 remembered per device, driver and kernel source in ``$QR_CL_CACHE/checks`` (default
 ``~/.cache/qr-cl/checks``), so later processes skip it. ``QR_CL_SELF_CHECK=off`` skips it.
+
+The check renders through the engine the public calls adapt (:func:`qr_cl.render.engine.render_view`
+and :func:`qr_cl.render.engine.fused_volume`, on the runtime it checks), so this module sits above
+the engine and below the public calls (:mod:`qr_cl.render.rasterize`, :mod:`qr_cl.render.gsplat_compat`).
 """
 from __future__ import annotations
 
@@ -21,11 +26,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..runtime import SAMPLERS, NoDeviceError, Runtime, runtime
-from ..runtime.constants import KERNEL_CONSTANTS
-from ..runtime.device import implementation, kernel_files, kernel_source, self_check_enabled
+from ..runtime import (KERNEL_CONSTANTS, SAMPLERS, NoDeviceError, Runtime, implementation, kernel_files, kernel_source,
+                       runtime, self_check_enabled)
 from ..scene import look_at
-from ..stages import blend_ref, select_ref, vrender_ref
+from ..stages import blend_ref, check_pixels, check_sampler, select_ref, vrender_ref
+from .autograd import View
+from .engine import feature_tensor, fused_volume, gaussian_tensors, image_pixels, render_view
+from .meta import RenderMeta
 
 #: The check scene: Gaussians, image size (px), channels, K of the K samplers.
 N_GAUSSIANS, WIDTH, HEIGHT, CHANNELS, K = 160, 40, 24, 24, 5
@@ -66,14 +73,28 @@ def _differing(got: np.ndarray, want: np.ndarray) -> float:
     return float(np.mean(np.abs(got - want).max(axis=1) > PIXEL_RTOL * scale))
 
 
-def _sampler_failures(label: str, geometry, features: np.ndarray, grad: np.ndarray, cam, sampler: str,
+def _camera(cam) -> tuple[np.ndarray, np.ndarray]:
+    """The check camera's viewmat [4,4] and K [3,3] as float32 arrays, as the public calls take them."""
+    return np.ascontiguousarray(cam.viewmat, np.float32), np.ascontiguousarray(cam.K, np.float32)
+
+
+def _render(rt: Runtime, geometry, features, cam, sampler: str, pixels: np.ndarray | None = None):
+    """``qr_cl.rasterize``'s render of the check scene on ``rt`` (the engine under it, the same
+    argument checks): image [P,C] (P = the pixels, or H*W) and its meta."""
+    viewmat, intrinsics = _camera(cam)
+    rays = None if pixels is None else check_pixels(pixels, WIDTH, HEIGHT)
+    view = View(viewmat, intrinsics, WIDTH, HEIGHT, sampler=sampler, k=check_sampler(sampler, K), pixels=rays)
+    out = render_view(*gaussian_tensors(*geometry), feature_tensor(features, N_GAUSSIANS), None, view, rt=rt)
+    return out.image, RenderMeta(out.plan)
+
+
+def _sampler_failures(rt: Runtime, label: str, geometry, features: np.ndarray, grad: np.ndarray, cam, sampler: str,
                       pixels: np.ndarray | None = None) -> list[str]:
-    """Render ``features`` [N, C] with ``sampler`` at ``pixels`` (None: the whole image) forward and
-    the feature gradient of sum(image * grad) backward; what of the two differs from the twins."""
-    from .engine import image_pixels                                     # the renderers use this module
-    from .rasterize import rasterize
+    """Render ``features`` [N, C] with ``sampler`` at ``pixels`` (None: the whole image) on ``rt``
+    forward and the feature gradient of sum(image * grad) backward; what of the two differs from
+    the twins."""
     f = torch.from_numpy(features).requires_grad_(True)
-    image, _, meta = rasterize(*geometry, f, cam.viewmat, cam.K, WIDTH, HEIGHT, sampler=sampler, k=K, pixels=pixels)
+    image, meta = _render(rt, geometry, f, cam, sampler, pixels)
     image = image.reshape(-1, features.shape[1])
     (image * torch.from_numpy(grad)).sum().backward()
     rays = image_pixels(WIDTH, HEIGHT) if pixels is None else pixels
@@ -90,31 +111,32 @@ def _sampler_failures(label: str, geometry, features: np.ndarray, grad: np.ndarr
     return failures
 
 
-def render_check() -> list[str]:
-    """Render the check scene on the process's runtime; returns what differed from the twins
-    (empty when the device passed)."""
-    from .engine import image_pixels                                     # the renderers use this module
-    from .rasterize import rasterize, render_volume_fused
+def render_check(rt: Runtime | None = None) -> list[str]:
+    """Render the check scene on ``rt`` (default: the process's runtime); returns what differed
+    from the twins (empty when the device passed)."""
+    rt = rt or runtime()
     geometry, features, grad, cam = _scene()
     pixels = image_pixels(WIDTH, HEIGHT)
     failures = []
     for sampler in SAMPLERS:
-        failures += _sampler_failures(sampler, geometry, features, grad, cam, sampler)
+        failures += _sampler_failures(rt, sampler, geometry, features, grad, cam, sampler)
     rng = np.random.default_rng(8)                                   # a table read in row parts
     wide = rng.normal(size=(N_GAUSSIANS, WIDE_CHANNELS)).astype(np.float32)
     some = pixels[::PIXEL_STEP]
-    with runtime().capped_buffers(wide.strides[0] * -(-N_GAUSSIANS // 3)):
-        failures += _sampler_failures(f"quantile, a table in row parts ({WIDE_CHANNELS} channels),", geometry, wide,
-                                      rng.normal(size=(len(some), WIDE_CHANNELS)).astype(np.float32), cam,
+    with rt.capped_buffers(wide.strides[0] * -(-N_GAUSSIANS // 3)):
+        failures += _sampler_failures(rt, f"quantile, a table in row parts ({WIDE_CHANNELS} channels),", geometry,
+                                      wide, rng.normal(size=(len(some), WIDE_CHANNELS)).astype(np.float32), cam,
                                       "quantile", some)
     half = features.astype(np.float16)                               # read as half (vload_half)
-    image, _, meta = rasterize(*geometry, half, cam.viewmat, cam.K, WIDTH, HEIGHT, sampler="quantile", k=K)
+    image, meta = _render(rt, geometry, half, cam, "quantile")
     twin = select_ref.select(meta, meta["tile_ranges"], meta["flatten_ids"], pixels, WIDTH, "quantile", K)
     want = blend_ref.blend(twin["ids"], twin["weights"], half.astype(np.float64))
     share = _differing(image.numpy().reshape(-1, CHANNELS), want)
     if share > DIFFERING_PIXELS:
         failures.append(f"quantile image of a float16 table: {share:.0%} of its rows differ from the float64 twin")
-    image, _, meta = render_volume_fused(*geometry, features, cam.viewmat, cam.K, WIDTH, HEIGHT)
+    image, _, plan, _ = fused_volume(rt, *gaussian_tensors(*geometry), feature_tensor(features, N_GAUSSIANS), None,
+                                     *_camera(cam), WIDTH, HEIGHT)
+    meta = RenderMeta(plan)
     want = vrender_ref.vrender(meta, meta["tile_ranges"], meta["flatten_ids"], features, WIDTH, HEIGHT)[0]
     share = _differing(image.numpy().reshape(-1, CHANNELS), want.reshape(-1, CHANNELS))
     if share > DIFFERING_PIXELS:
@@ -143,22 +165,15 @@ def checked_runtime() -> Runtime:
     if id(rt) in _PASSED or not self_check_enabled():
         return rt
     record = _record(rt)
-    if record.is_file():
-        _PASSED.add(id(rt))
-        return rt
-    _PASSED.add(id(rt))                    # the check's own renders run on this runtime
-    try:
+    if not record.is_file():
         with torch.enable_grad():          # it may be first reached under no_grad or in a Function's forward
-            failures = render_check()
-    except BaseException:
-        _PASSED.discard(id(rt))
-        raise
-    if failures:
-        _PASSED.discard(id(rt))
-        raise DeviceCheckError(f"{implementation(rt.device)} failed qr-cl's render check, so qr-cl refuses "
-                               "it (QR_CL_DEVICE chooses another device):\n  " + "\n  ".join(failures))
-    record.parent.mkdir(parents=True, exist_ok=True)
-    record.write_text(json.dumps({"device": implementation(rt.device), "passed": True}))
+            failures = render_check(rt)
+        if failures:
+            raise DeviceCheckError(f"{implementation(rt.device)} failed qr-cl's render check, so qr-cl refuses "
+                                   "it (QR_CL_DEVICE chooses another device):\n  " + "\n  ".join(failures))
+        record.parent.mkdir(parents=True, exist_ok=True)
+        record.write_text(json.dumps({"device": implementation(rt.device), "passed": True}))
+    _PASSED.add(id(rt))
     return rt
 
 

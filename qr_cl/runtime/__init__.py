@@ -4,6 +4,10 @@ outputs), and the constants shared with the kernels."""
 from .constants import ALPHA_MAX, ALPHA_MIN, MAX_CHANNELS, SAMPLERS, SH_C0, T_MIN, TILE, WALK_ALL
 from .device import (BLOCK_GROUP, DeviceLimitError, NoDeviceError, Runtime, choose_device, device_kind, list_devices,
                      loop_limit, runtime, trial_run, walk_windows)
+from .constants import (KERNEL_CONSTANTS, SH_C1, SH_C2, SH_C3, SPAN_COND_MAX, SPAN_DET_MIN, SPAN_MARGIN_PX,
+                        SPAN_MARGIN_REL, SPAN_ROUNDING, SPAN_SLACK)
+from .device import implementation, kernel_files, kernel_source, self_check_enabled
+from .implementations import environment, installed
 from .memory import (BufferLimitError, HostMemoryError, HostPool, channel_layout, check_buffer, check_channels, device_empty,
                      device_rows, device_scan_works, device_zeros, exclusive_scan, host_empty, host_pool, last_value,
                      padded_rows, padded_vector, row_parts, shared_array, streamed, table_parts, to_device,
@@ -14,4 +18,7 @@ __all__ = ["ALPHA_MAX", "BLOCK_GROUP", "ALPHA_MIN", "MAX_CHANNELS", "SAMPLERS", 
            "check_channels", "choose_device", "device_empty", "device_kind", "device_rows", "device_scan_works", "device_zeros",
            "exclusive_scan", "host_empty", "host_pool", "last_value", "list_devices", "loop_limit",
            "padded_rows", "padded_vector", "row_parts", "runtime", "shared_array", "streamed", "table_parts", "to_device", "trim_device_pool",
-           "trial_run", "WALK_ALL", "walk_windows"]
+           "trial_run", "WALK_ALL", "walk_windows",
+           "KERNEL_CONSTANTS", "SH_C1", "SH_C2", "SH_C3", "SPAN_COND_MAX", "SPAN_DET_MIN", "SPAN_MARGIN_PX",
+           "SPAN_MARGIN_REL", "SPAN_ROUNDING", "SPAN_SLACK", "environment", "implementation", "installed",
+           "kernel_files", "kernel_source", "self_check_enabled"]

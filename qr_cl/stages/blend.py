@@ -14,13 +14,15 @@ before :func:`blend_backward_alpha`.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass, field
+
 import numpy as np
 import pyopencl.array as cla
 
 from ..runtime import (TILE, Runtime, channel_layout, check_buffer, device_empty, device_zeros,
                        padded_vector, streamed, to_device, walk_windows)
-from .select import Selection
-from .transpose import backward_order, longest_segment, transpose
+from .select import Selection, SelectionKernel
+from .transpose import Transpose, backward_order, longest_segment, transpose
 
 OWNERS_PER_CORE = 1   # the CPU backward scatter's work-items per compute unit
 GPU_VW = 4            # GPU blends: floats of a row per work-item (a 16-byte load)
@@ -49,6 +51,29 @@ def _check_entries(array: cla.Array, sel: Selection, name: str) -> None:
     """ValueError unless ``array`` is float32 with one value per selection entry (``sel.ids``'s shape)."""
     if array.shape != sel.ids.shape or array.dtype != np.float32:
         raise ValueError(f"{name} must be float32 {sel.ids.shape} (an entry's), got {array.dtype} {array.shape}")
+
+
+@dataclass(eq=False)
+class BackwardViews:
+    """What the backward of one Selection reads besides it, made on first use and kept by the
+    selection's holder (the engine's cache entry or autograd Function, a training step), never by
+    the Selection: its transpose (:func:`qr_cl.stages.transpose.transpose`, None until made) and
+    the backward scatter's owner bounds by (number of owners, first row, rows) of a row part
+    (:func:`owner_bounds`). Pass the same views to every backward call of the selection."""
+
+    transposed: Transpose | None = None
+    owners: dict[tuple[int, int, int], cla.Array] = field(default_factory=dict)
+
+    def transpose(self, sel: Selection) -> Transpose:
+        """The transpose of ``sel`` (made now if it is not yet)."""
+        if self.transposed is None:
+            self.transposed = transpose(sel)
+        return self.transposed
+
+    @property
+    def nbytes(self) -> int:
+        """Device bytes held."""
+        return (0 if self.transposed is None else self.transposed.nbytes) + sum(a.nbytes for a in self.owners.values())
 
 
 def row_defines(features: cla.Array) -> dict:
@@ -87,7 +112,7 @@ def longest_entries(sel: Selection) -> int:
 
 def blend_forward(sel: Selection, features: cla.Array, channels: int,
                   background: np.ndarray | None = None, out: cla.Array | None = None, row0: int = 0,
-                  accumulate: bool = False) -> cla.Array:
+                  accumulate: bool = False, kernel: SelectionKernel | None = None) -> cla.Array:
     """image [P, cstride] = sum_j w[p,j] features[id[p,j]] (+ t_rem[p] * background).
 
     features: float32 or float16 [R, cstride] device rows (cstride from channel_layout(channels);
@@ -96,9 +121,10 @@ def blend_forward(sel: Selection, features: cla.Array, channels: int,
     background: [channels] or None (no background term); out: an optional float32 [P, cstride]
     device array to write into (else one from the runtime's memory pool); ``accumulate``: add the
     blend to ``out`` (the parts after the first).
-    Rays as in the Selection; for the full image row p = y * width + x. A deferred selection
-    (``select(..., defer=True)``) is made here by its kernel with this blend fused in (the first
-    part: row0 0, not accumulated; else it is made alone first).
+    Rays as in the Selection; for the full image row p = y * width + x. ``kernel``: the
+    selection's kernel when it is still to run (:func:`qr_cl.stages.select.deferred_select`),
+    run here with this blend fused in (only for the first part: row0 0, not accumulated); the
+    caller must not run it again.
     """
     rt = sel.plan.runtime
     vw, nv, cstride = channel_layout(channels, rt.narrow_rows)
@@ -113,12 +139,12 @@ def blend_forward(sel: Selection, features: cla.Array, channels: int,
         return image
     bg = dict(background=to_device(rt, padded_vector(background, channels, cstride)),
               use_bg=background is not None, stream=streamed(image.nbytes))
-    if sel.pending is not None and row0 == 0 and not accumulate:
-        launch, sel.pending = sel.pending, None
-        launch(defines={"VW": vw, "NV": nv, "BLEND_ROWS": 1, **row_defines(features)}, features=features,
-               n_rows=features.shape[0], cstride=cstride, image=image, **bg)
+    if kernel is not None:
+        if row0 or accumulate:
+            raise ValueError("a selection's kernel is fused with its first blend (row0 0, not accumulated)")
+        kernel.run(defines={"VW": vw, "NV": nv, "BLEND_ROWS": 1, **row_defines(features)}, features=features,
+                   n_rows=features.shape[0], cstride=cstride, image=image, **bg)
         return image
-    sel.ready()
     size, full = sel.launch()
     plan = sel.plan
     args = dict(offsets=sel.offsets, count=sel.count, n_entries=sel.ids.size, sel_ids=sel.ids, sel_w=sel.weights,
@@ -139,7 +165,7 @@ def blend_forward(sel: Selection, features: cla.Array, channels: int,
 
 
 def blend_backward(sel: Selection, dimage: cla.Array, channels: int, out: cla.Array | None = None,
-                   row0: int = 0, n_rows: int | None = None) -> cla.Array:
+                   row0: int = 0, n_rows: int | None = None, views: BackwardViews | None = None) -> cla.Array:
     """dF [R, cstride] with dF[g - row0] = sum over entries (p, j) with id[p,j] = g of w[p,j]
     dimage[p], for the Gaussians g of the rows [row0, row0 + R) (R = ``n_rows``; None: to N).
 
@@ -149,6 +175,8 @@ def blend_backward(sel: Selection, dimage: cla.Array, channels: int, out: cla.Ar
     return identical bytes, for any row part, on either kernel (:func:`scatters` says which): a
     scatter by OWNERS_PER_CORE work-items per compute unit, each owning a range of the part's
     Gaussians (no transpose), or a gather over :func:`qr_cl.stages.transpose.transpose`.
+    ``views``: the selection's :class:`BackwardViews` (read and completed here; None: made for
+    this call alone).
     """
     rt = sel.plan.runtime
     vw, nv, cstride = channel_layout(channels, rt.narrow_rows)
@@ -158,23 +186,24 @@ def blend_backward(sel: Selection, dimage: cla.Array, channels: int, out: cla.Ar
     check_buffer(rt, 4 * n_rows * cstride, f"dF of {n_rows} Gaussians x {cstride} channels")
     dfeatures = device_empty(rt, (n_rows, cstride), np.float32) if out is None else out
     _check_rows(dfeatures, n_rows, cstride, "out")
-    if scatters(sel):
+    views = BackwardViews() if views is None else views
+    if scatters(sel, views):
         n_owners = OWNERS_PER_CORE * rt.device.max_compute_units
         key = (n_owners, row0, n_rows)
-        if key not in sel.owners:
-            sel.owners[key] = to_device(rt, owner_bounds(sel, n_owners, row0, row0 + n_rows), np.int32)
-        bounds = sel.owners[key]
+        if key not in views.owners:
+            views.owners[key] = to_device(rt, owner_bounds(sel, n_owners, row0, row0 + n_rows), np.int32)
+        bounds = views.owners[key]
         rt.launch("blend_backward_scatter", bounds.size - 1, defines={"VW": vw, "NV": nv}, local_size=(1,),
                   n_owners=bounds.size - 1, bounds=bounds, n_rays=sel.n_rays,
                   offsets=sel.offsets, count=sel.count, n_entries=sel.ids.size, sel_ids=sel.ids,
                   sel_w=sel.weights, dimage=dimage, cstride=cstride, row0=row0,
                   touched=device_zeros(rt, max(n_rows, 1), np.uint8), dfeatures=dfeatures)
         return dfeatures
-    t = transpose(sel)
-    args = dict(n=n_rows, order=backward_order(sel, row0, row0 + n_rows), n_chunks=t.chunks, cursor=t.cursor,
+    t = views.transpose(sel)
+    args = dict(n=n_rows, order=backward_order(sel, t, row0, row0 + n_rows), n_chunks=t.chunks, cursor=t.cursor,
                 t_ray=t.ray, t_w=t.weight, dimage=dimage, n_rays=sel.n_rays, cstride=cstride, row0=row0,
                 dfeatures=dfeatures)
-    windows = walk_windows(rt.loop_limit, longest_segment(sel) if rt.loop_limit else 0, GATHER_LOOPS)
+    windows = walk_windows(rt.loop_limit, longest_segment(t) if rt.loop_limit else 0, GATHER_LOOPS)
     if rt.gpu_shaped:
         defines, size, local = group_shape(rt, n_rows, cstride)
         kernel = "blend_backward_group"
@@ -221,10 +250,11 @@ def owner_bounds(sel: Selection, owners: int, g0: int = 0, g1: int | None = None
     return np.concatenate([[g0], np.clip(cuts << shift, g0, g1), [g1]]).astype(np.int32)
 
 
-def scatters(sel: Selection) -> bool:
-    """Whether :func:`blend_backward` scatters rather than gathers over the transpose: on CPU-shaped
-    runtimes, for whole images (at least as many rays as Gaussians) and for pixel subsets whose
-    transpose was not made ahead (:func:`prepare_backward`); GPU shapes always gather. On PoCL the
+def scatters(sel: Selection, views: BackwardViews | None = None) -> bool:
+    """Whether :func:`blend_backward` with ``views`` scatters rather than gathers over the
+    transpose: on CPU-shaped runtimes, for whole images (at least as many rays as Gaussians) and
+    for pixel subsets whose transpose was not made ahead (:func:`prepare_backward`); GPU shapes
+    always gather. On PoCL the
     scatter needs no transpose, so it measured faster for whole images and for subsets that would
     otherwise transpose on the spot; a transpose made ahead on another thread leaves the gather
     slightly faster (see qr-cl bench). A device with a loop limit gathers too: the scatter's few
@@ -232,14 +262,17 @@ def scatters(sel: Selection) -> bool:
     rt = sel.plan.runtime
     if rt.gpu_shaped or rt.loop_limit is not None:
         return False
-    return sel.n_rays >= sel.n_gaussians or sel.transposed is None
+    return sel.n_rays >= sel.n_gaussians or views is None or views.transposed is None
 
 
-def prepare_backward(sel: Selection) -> None:
-    """Make ahead what :func:`blend_backward` will need of ``sel`` (geometry only: the transpose,
-    for GPU shapes and pixel subsets), e.g. on another thread while the network runs."""
-    if not scatters(sel) or sel.n_rays < sel.n_gaussians:
-        transpose(sel)
+def prepare_backward(sel: Selection) -> BackwardViews:
+    """The :class:`BackwardViews` of ``sel`` with what :func:`blend_backward` will need made ahead
+    (geometry only: the transpose, for GPU shapes and pixel subsets), e.g. on another thread while
+    the network runs."""
+    views = BackwardViews()
+    if not scatters(sel, views) or sel.n_rays < sel.n_gaussians:
+        views.transpose(sel)
+    return views
 
 
 def _ray_pixels(sel: Selection) -> dict:
@@ -298,16 +331,16 @@ def blend_backward_alpha(sel: Selection, d_w: cla.Array, d_trem: np.ndarray | No
     return d_w
 
 
-def splat_backward(sel: Selection, d_alpha: cla.Array) -> cla.Array:
+def splat_backward(sel: Selection, d_alpha: cla.Array, views: BackwardViews | None = None) -> cla.Array:
     """dL/dsplat [N, 8] float32 (d mean2d x, y in px; d conic A, B, C; d opacity; 0; 0) from
     dL/dalpha per selection entry (:func:`blend_backward_alpha`), summed per Gaussian over the
     selection's transpose in a fixed order (bitwise reproducible). Entries whose alpha was
-    clamped to ALPHA_MAX contribute nothing."""
+    clamped to ALPHA_MAX contribute nothing. ``views``: as :func:`blend_backward`'s."""
     rt = sel.plan.runtime
-    t = transpose(sel)
+    t = (BackwardViews() if views is None else views).transpose(sel)
     d_splats = device_empty(rt, (sel.n_gaussians, 8), np.float32)
     # splat_backward reads no feature rows; blend.cl is built with some row vector width all the same
-    for walk_from, walk_to in walk_windows(rt.loop_limit, longest_segment(sel) if rt.loop_limit else 0, SPLAT_LOOPS):
+    for walk_from, walk_to in walk_windows(rt.loop_limit, longest_segment(t) if rt.loop_limit else 0, SPLAT_LOOPS):
         rt.launch("splat_backward", sel.n_gaussians, defines={"VW": 1, "NV": 1}, n=sel.n_gaussians,
                   n_chunks=t.chunks, cursor=t.cursor, t_ray=t.ray, t_entry=t.entry, d_alpha=d_alpha,
                   splats=sel.plan.splats, **_ray_pixels(sel), d_splats=d_splats, walk_from=walk_from,

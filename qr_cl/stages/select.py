@@ -17,9 +17,8 @@ that selected nothing (background weight 1 there, 0 elsewhere).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import lru_cache
-from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 import pyopencl as cl
@@ -29,12 +28,17 @@ from ..runtime import (BLOCK_GROUP, SAMPLERS, TILE, Runtime, check_buffer, devic
                        last_value, to_device, walk_windows)
 from .binning import SORT_BYTES_PER_KEY, RasterPlan
 
-if TYPE_CHECKING:
-    from .transpose import Transpose
-
-@dataclass
+@dataclass(frozen=True, kw_only=True, eq=False)
 class Selection:
-    """Per-ray (Gaussian id, weight) lists on the device.
+    """Per-ray (Gaussian id, weight) lists on the device: a value, made by :func:`select` or
+    :func:`deferred_select` (or derived from one, e.g. by training's
+    :func:`qr_cl.app.training.selections.derived`), constructed by keyword only.
+
+    The contract: its fields are never reassigned (frozen), and no stage writes into it or its
+    arrays once the selection kernel has run; the stages that read it (blend, transpose) return
+    what they make of it (the transpose, the backward's owner bounds:
+    :class:`qr_cl.stages.blend.BackwardViews`) to their caller, which keeps it beside the selection.
+    Equality is identity (two selections are the same only if they are one object).
 
     Rays: the whole image (``pixels is None``, ray p = y * width + x) or a pixel subset
     (``pixels`` [P,2] int32 (x, y), ray p = row p). Entries of ray p are
@@ -42,13 +46,9 @@ class Selection:
     and topk: dense rows of K at p * K, padded with -1 / 0). Per ray (float32 [P]): ``t_walk`` the
     transmittance where the ray's walk stopped, ``t_sel`` the transmittance among the selected
     Gaussians before normalization (T^Q; the final T for volume), ``t_rem`` the background weight.
-    ``k`` is K (0 for volume); ``n_gaussians`` is N of the plan. ``transposed`` and ``order`` cache
-    :func:`qr_cl.stages.transpose.transpose` and its backward order (the blend backward's view of
-    the selection); ``owners`` the backward
-    scatter's owner bounds by (number of owners, first row, rows) of a row part
-    (:func:`qr_cl.stages.blend.owner_bounds`).
-    ``pending`` is the deferred selection kernel of ``select(..., defer=True)`` until it is
-    enqueued: by the first blend forward, fused with it, or by :meth:`ready`.
+    ``k`` is K (0 for volume). The ids index a table of :attr:`n_gaussians` rows: the plan's N
+    Gaussians, or ``n_rows`` rows when set (a compact table of the Gaussians some rays use).
+    A selection from :func:`deferred_select` is made once its :class:`SelectionKernel` has run.
     """
 
     plan: RasterPlan
@@ -62,18 +62,7 @@ class Selection:
     t_walk: cla.Array
     t_sel: cla.Array
     t_rem: cla.Array
-    transposed: Transpose | None = field(default=None, repr=False)
-    order: cla.Array | None = field(default=None, repr=False)
-    owners: dict[tuple[int, int, int], cla.Array] = field(default_factory=dict, repr=False)
-    pending: Callable[..., None] | None = field(default=None, repr=False)
-
-    def ready(self) -> Selection:
-        """Enqueue the deferred selection kernel, if it still is (see ``pending``); returns self.
-        Kernels and reads enqueued after this see the selection (the queue is in order)."""
-        if self.pending is not None:
-            launch, self.pending = self.pending, None
-            launch()
-        return self
+    n_rows: int | None = None
 
     @property
     def n_rays(self) -> int:
@@ -81,15 +70,14 @@ class Selection:
 
     @property
     def n_gaussians(self) -> int:
-        return self.plan.n_gaussians
+        """The rows of the table the ids index: ``n_rows``, or the plan's N."""
+        return self.plan.n_gaussians if self.n_rows is None else self.n_rows
 
     @property
     def nbytes(self) -> int:
-        """Device bytes held by the selection (and its cached transpose and owner bounds)."""
-        arrays = [self.ids, self.weights, self.offsets, self.count, self.t_walk, self.t_sel, self.t_rem]
-        arrays += [a for a in (*(self.transposed or ()), self.order) if isinstance(a, cla.Array)]
-        arrays += list(self.owners.values())
-        return sum(a.nbytes for a in arrays)
+        """Device bytes held by the selection's arrays."""
+        return sum(a.nbytes for a in (self.ids, self.weights, self.offsets, self.count, self.t_walk, self.t_sel,
+                                      self.t_rem))
 
     def launch(self) -> tuple[int, int]:
         """(global size of a per-ray kernel, full-image flag)."""
@@ -236,18 +224,51 @@ def entry_bytes(rt: Runtime) -> int:
     return SORT_BYTES_PER_KEY if rt.gpu_shaped else 4
 
 
-def select(plan: RasterPlan, sampler: str = "quantile", k: int = 40, pixels=None,
-           defer: bool = False) -> Selection:
+@dataclass(frozen=True, eq=False)
+class SelectionKernel:
+    """The selection kernel of a Selection from :func:`deferred_select`, not yet enqueued: the
+    walk of ``sampler`` over the selection's rays writing ``outputs`` (its device arrays). Its
+    caller enqueues it once, alone (:meth:`run`) or with the first blend of the selection fused in
+    (:func:`qr_cl.stages.blend.blend_forward` with ``kernel``), before anything reads the
+    selection."""
+
+    walk: Walk
+    sampler: str
+    outputs: dict
+
+    def run(self, defines: dict | None = None, **blend_args) -> None:
+        """Enqueue the kernel (``defines`` and ``blend_args``: the build and arguments of a fused
+        blend, none for the selection alone). Kernels and reads enqueued after it see the
+        selection (the queue is in order)."""
+        walk, outputs = self.walk, self.outputs
+        if self.sampler != "stratified":
+            walk.launch(f"select_{self.sampler}", defines, **outputs, **blend_args)
+        elif len(walk.windows) == 1:                  # both walks in one launch
+            walk.launch("select_stratified", defines, **outputs, **blend_args, **{"pass": 0})
+        else:
+            for pass_ in (1, 2):
+                walk.launch("select_stratified", defines, **outputs, **blend_args, **{"pass": pass_})
+
+
+def select(plan: RasterPlan, sampler: str = "quantile", k: int = 40, pixels=None) -> Selection:
     """Run the selection kernel of ``sampler`` ("volume", "quantile", "topk" or "stratified") with
     K = ``k`` (ignored by volume) for the whole image or the rays ``pixels`` [P,2] (x, y) in px.
 
     Cost is proportional to the number of rays (and their tile lists), not to width * height.
-    ``defer``: on CPU-shaped runtimes without a loop limit the K samplers' kernel is not enqueued
-    yet but kept as the Selection's ``pending`` launch, so that the first
-    :func:`qr_cl.stages.blend.blend_forward` runs it with the blend fused in (each ray blended
-    right after it is selected: the same selection and image); call :meth:`Selection.ready`
-    before any other use.
     """
+    selection, kernel = deferred_select(plan, sampler, k, pixels)
+    if kernel is not None:
+        kernel.run()
+    return selection
+
+
+def deferred_select(plan: RasterPlan, sampler: str = "quantile", k: int = 40,
+                    pixels=None) -> tuple[Selection, SelectionKernel | None]:
+    """:func:`select`, its kernel left to the caller where a blend can be fused into it: (the
+    Selection, its :class:`SelectionKernel` not yet enqueued) for the K samplers on CPU-shaped
+    runtimes without a loop limit, so that the first blend runs it with the blend fused in
+    (each ray blended right after it is selected: the same selection and image); else (the
+    Selection made, None)."""
     k = check_sampler(sampler, k)
     rt = plan.runtime
     q = rt.queue
@@ -257,9 +278,10 @@ def select(plan: RasterPlan, sampler: str = "quantile", k: int = 40, pixels=None
     # zeroed, so a ray that a driver's cut-short kernel left unwritten selects nothing
     count, t_walk, t_sel, t_rem = (device_zeros(rt, max(n_rays, 1), dt)
                                    for dt in (np.int32, np.float32, np.float32, np.float32))
+    rays = dict(plan=plan, sampler=sampler, k=k, pixels=pixels, count=count, t_walk=t_walk, t_sel=t_sel, t_rem=t_rem)
     if n_rays == 0:
-        return Selection(plan, sampler, k, pixels, device_empty(rt, 1, np.int32), device_empty(rt, 1, np.float32),
-                         device_zeros(rt, 1, np.int32), count, t_walk, t_sel, t_rem)
+        return Selection(**rays, ids=device_empty(rt, 1, np.int32), weights=device_empty(rt, 1, np.float32),
+                         offsets=device_zeros(rt, 1, np.int32)), None
     walk = Walk(plan, pixels, n_rays, step_loops(rt, sampler, k))
     if sampler == "volume":
         offsets = device_zeros(rt, n_rays, np.int32)
@@ -269,23 +291,13 @@ def select(plan: RasterPlan, sampler: str = "quantile", k: int = 40, pixels=None
         check_buffer(rt, entry_bytes(rt) * total, f"the volume selection of {n_rays} rays ({total} entries)")
         ids, weights = device_empty(rt, max(total, 1), np.int32), device_empty(rt, max(total, 1), np.float32)
         walk.launch("volume_fill", offsets=offsets, out_ids=ids, out_w=weights, t_sel=t_sel, t_rem=t_rem)
-        return Selection(plan, sampler, k, pixels, ids, weights, offsets, count, t_walk, t_sel, t_rem)
+        return Selection(**rays, ids=ids, weights=weights, offsets=offsets), None
     check_buffer(rt, entry_bytes(rt) * n_rays * k, f"the {sampler} selection of {n_rays} rays x K={k}")
     ids, weights = device_empty(rt, n_rays * k, np.int32), device_empty(rt, n_rays * k, np.float32)
-    outputs = dict(K=k, out_ids=ids, out_w=weights, count=count, t_walk=t_walk, t_sel=t_sel, t_rem=t_rem)
-
-    def launch(defines: dict | None = None, **blend_args) -> None:
-        if sampler != "stratified":
-            walk.launch(f"select_{sampler}", defines, **outputs, **blend_args)
-        elif len(walk.windows) == 1:                  # both walks in one launch
-            walk.launch("select_stratified", defines, **outputs, **blend_args, **{"pass": 0})
-        else:
-            for pass_ in (1, 2):
-                walk.launch("select_stratified", defines, **outputs, **blend_args, **{"pass": pass_})
-    selection = Selection(plan, sampler, k, pixels, ids, weights, row_offsets(q, n_rays, k), count, t_walk, t_sel,
-                          t_rem)
-    if defer and not rt.gpu_shaped and rt.loop_limit is None:
-        selection.pending = launch
-    else:
-        launch()
-    return selection
+    kernel = SelectionKernel(walk, sampler, dict(K=k, out_ids=ids, out_w=weights, count=count, t_walk=t_walk,
+                                                 t_sel=t_sel, t_rem=t_rem))
+    selection = Selection(**rays, ids=ids, weights=weights, offsets=row_offsets(q, n_rays, k))
+    if rt.gpu_shaped or rt.loop_limit is not None:
+        kernel.run()
+        return selection, None
+    return selection, kernel

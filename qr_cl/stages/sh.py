@@ -1,4 +1,4 @@
-"""Spherical-harmonic colour stage (sh.cl): SH coefficients + camera position -> RGB per Gaussian,
+"""Spherical-harmonic color stage (sh.cl): SH coefficients + camera position -> RGB per Gaussian,
 and its backward to the coefficients and the means. Twin: :mod:`qr_cl.stages.sh_ref`."""
 from __future__ import annotations
 

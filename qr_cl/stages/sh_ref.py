@@ -28,7 +28,7 @@ def sh_basis(dirs: torch.Tensor, degree: int) -> torch.Tensor:
 def sh_to_rgb(means, sh, campos):
     """RGB [N,3] = max(0, SH(dir) . coefficients + 0.5), dir = normalize(mean - campos) (sh.cl), for
     sh [N,(d+1)^2,3]. numpy inputs: a float64 numpy result; tensors: a tensor in their dtype, with
-    gradients (the colour stage of :func:`qr_cl.render.rasterization`)."""
+    gradients (the color stage of :func:`qr_cl.render.rasterization`)."""
     as_numpy = not isinstance(sh, torch.Tensor)
     if as_numpy:
         means, sh, campos = (torch.as_tensor(np.asarray(a, np.float64)) for a in (means, sh, campos))

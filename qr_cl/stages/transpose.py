@@ -25,47 +25,50 @@ MAX_HIST = 1 << 24            # ... and n_gaussians * chunks stays below this ma
 
 
 class Transpose(NamedTuple):
-    """A Selection's entries grouped by Gaussian: cursor [N * chunks] int32 (cursor[(g+1) * chunks
-    - 1] is the end of Gaussian g's segment), and per transposed entry its ray [E] int32, weight
-    [E] float32 and index [E] int32 into the selection's ids."""
+    """A Selection's entries grouped by Gaussian, what :func:`transpose` returns for its caller to
+    keep: cursor [N * chunks] int32 (cursor[(g+1) * chunks - 1] is the end of Gaussian g's
+    segment), per transposed entry its ray [E] int32, weight [E] float32 and index [E] int32 into
+    the selection's ids, and the order [N] int32 in which the blend backward takes the Gaussians
+    (:func:`backward_order`)."""
 
     cursor: cla.Array
     ray: cla.Array
     weight: cla.Array
     entry: cla.Array
     chunks: int
+    order: cla.Array
+
+    @property
+    def nbytes(self) -> int:
+        """Device bytes held."""
+        return sum(a.nbytes for a in (self.cursor, self.ray, self.weight, self.entry, self.order))
 
 
 def transpose(sel: Selection) -> Transpose:
-    """The entries of ``sel`` grouped by Gaussian, computed once and kept in ``sel.transposed``
-    (with :func:`backward_order` in ``sel.order``): :func:`sorted_transpose` on GPU-shaped
-    runtimes and on devices with a loop limit (the counting sort's few work-items each walk many
-    rays), :func:`counted_transpose` on CPU-shaped ones; the same bytes either way."""
-    if sel.transposed is None:
-        rt = sel.plan.runtime
-        sel.transposed = (sorted_transpose if rt.gpu_shaped or rt.loop_limit is not None else counted_transpose)(sel)
-        sel.order = _backward_order(sel, sel.transposed)
-    return sel.transposed
+    """The entries of ``sel`` grouped by Gaussian, made anew on every call (the caller keeps
+    them): :func:`sorted_transpose` on GPU-shaped runtimes and on devices with a loop limit (the
+    counting sort's few work-items each walk many rays), :func:`counted_transpose` on CPU-shaped
+    ones; the same bytes either way."""
+    rt = sel.plan.runtime
+    return (sorted_transpose if rt.gpu_shaped or rt.loop_limit is not None else counted_transpose)(sel)
 
 
-def longest_segment(sel: Selection) -> int:
-    """The most transposed entries of one Gaussian of ``sel`` (read from the device): how far a
-    walk over a Gaussian's entries goes."""
-    t = transpose(sel)
+def longest_segment(t: Transpose) -> int:
+    """The most transposed entries of one Gaussian (read from the device): how far a walk over a
+    Gaussian's entries goes."""
     ends = t.cursor.get().reshape(-1, t.chunks)[:, -1].astype(np.int64)
     return int(np.diff(ends, prepend=0).max(initial=0))
 
 
-def backward_order(sel: Selection, g0: int = 0, g1: int | None = None) -> cla.Array:
+def backward_order(sel: Selection, t: Transpose, g0: int = 0, g1: int | None = None) -> cla.Array:
     """The Gaussians g0..g1 (default all N) int32 in the order the blend backward takes them: by
     the tile, then the ray, of the first ray of their transposed entries (Gaussians without entries
     last), so that neighbouring work-items gather neighbouring rows of dImage. Made with the
-    transpose, by host work only (a training step's next transpose runs on another thread); a row
-    part's (g0..g1 not all N) is picked from it on the host."""
-    transpose(sel)
+    transpose ``t`` of ``sel``, by host work only (a training step's next transpose runs on another
+    thread); a row part's (g0..g1 not all N) is picked from it on the host."""
     if g0 == 0 and g1 in (None, sel.n_gaussians):
-        return sel.order
-    order = sel.order.get()
+        return t.order
+    order = t.order.get()
     return to_device(sel.plan.runtime, order[(order >= g0) & (order < g1)], np.int32)
 
 
@@ -91,15 +94,15 @@ def counted_transpose(sel: Selection) -> Transpose:
         exclusive_scan(rt, cursor)
         rt.launch("transpose_fill", chunks, **args, sel_w=sel.weights, cursor=cursor,
                   t_ray=t_ray, t_w=t_w, t_entry=t_entry)
-    return Transpose(cursor, t_ray, t_w, t_entry, chunks)
+    return Transpose(cursor, t_ray, t_w, t_entry, chunks, _first_ray_order(sel, cursor, t_ray, chunks))
 
 
-def _backward_order(sel: Selection, t: Transpose) -> cla.Array:
-    """See :func:`backward_order`."""
+def _first_ray_order(sel: Selection, cursor: cla.Array, t_ray: cla.Array, chunks: int) -> cla.Array:
+    """The order [N] of :func:`backward_order`, from a transpose's cursor and rays."""
     plan = sel.plan
-    ends = t.cursor.get().reshape(-1, t.chunks)[:, -1].astype(np.int64)
+    ends = cursor.get().reshape(-1, chunks)[:, -1].astype(np.int64)
     starts = np.concatenate([[0], ends[:-1]])
-    first = t.ray.get()[np.minimum(starts, t.ray.size - 1)]
+    first = t_ray.get()[np.minimum(starts, t_ray.size - 1)]
     xy = (np.stack([first % plan.width, first // plan.width], 1) if sel.pixels is None
           else sel.pixels[np.minimum(first, max(len(sel.pixels) - 1, 0))])
     tile = np.where(ends > starts, (xy[:, 1] // TILE) * plan.tiles_x + xy[:, 0] // TILE, np.iinfo(np.int32).max)
@@ -140,4 +143,4 @@ def sorted_transpose(sel: Selection) -> Transpose:
             _max_scan(rt.context)(cursor)
         else:
             cursor.set(np.maximum.accumulate(cursor.get()))
-    return Transpose(cursor, t_ray, t_w, t_entry, 1)
+    return Transpose(cursor, t_ray, t_w, t_entry, 1, _first_ray_order(sel, cursor, t_ray, 1))

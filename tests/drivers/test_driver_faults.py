@@ -57,9 +57,7 @@ def child() -> None:
         blend_forward(sel, features, C).get()
         blend_forward(sel, part, C, row0=N // 2).get()
         for scatter in (True, False):                   # both backward kernels (the gather transposes)
-            sel.transposed = sel.order = None
-            sel.owners.clear()
-            blend_module.scatters = (lambda s, v=scatter: v)
+            blend_module.scatters = (lambda s, views=None, v=scatter: v)
             blend_backward(sel, dimage, C).get()
             blend_backward(sel, dimage, C, row0=N // 2).get()
         blend_module.scatters = scatters

@@ -161,7 +161,7 @@ def exercise() -> None:
     print("render_volume_fused and rasterize, 544 channels: ok", flush=True)
     row_parts_exercise(rt, geo, cam, feats, wide, bg, pixels)
 
-    for degree in (1, 3):                      # the colour stage and its backward (sh_backward)
+    for degree in (1, 3):                      # the color stage and its backward (sh_backward)
         coeffs = torch.from_numpy(sh).requires_grad_(True)
         qr_cl.rasterize(*geo, coeffs, cam.viewmat, cam.K, W, H, sh_degree=degree)[0].sum().backward()
         assert bool(torch.isfinite(coeffs.grad).all())

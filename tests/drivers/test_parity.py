@@ -3,8 +3,8 @@ rusticl (privately, by tests/drivers/install.sh) against PoCL, the system's defa
 
 A child process per (implementation, launch shape, run) renders every public path forward and
 backward on the scenes (:func:`render_all`): rasterize with each sampler (image, alpha, feature
-gradient), a pixel subset, the SH colour kernel, render_volume_fused (image, alpha, depth) and
-rasterization (image and gradients w.r.t. means, quats, scales, opacities and colours). Each
+gradient), a pixel subset, the SH color kernel, render_volume_fused (image, alpha, depth) and
+rasterization (image and gradients w.r.t. means, quats, scales, opacities and colors). Each
 implementation runs twice with one fresh kernel cache: the first run builds from source, the
 second loads pyopencl's cached binaries (which carry no argument info on Intel's runtime). Every
 output must equal PoCL's within 1e-4 of its largest value (a float16 table's gradient, rounded to

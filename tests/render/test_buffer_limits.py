@@ -83,13 +83,13 @@ def test_both_public_calls_split_the_same_way(random_scene, monkeypatch, shape):
     """rasterize and rasterization run one engine: a render too large for one buffer comes out
     the same through either, with the same gradients w.r.t. the Gaussians."""
     m, q, s, o, v, K, w, h = random_scene
-    colours = np.random.default_rng(5).random((len(m), 20)).astype(np.float32)
+    colors = np.random.default_rng(5).random((len(m), 20)).astype(np.float32)
     sets = []
 
     def both():
         out = []
         for call in ("rasterize", "rasterization"):
-            params = [torch.from_numpy(a).requires_grad_(True) for a in (m, q, s, o, colours)]
+            params = [torch.from_numpy(a).requires_grad_(True) for a in (m, q, s, o, colors)]
             if call == "rasterize":
                 img, _, meta = qr_cl.rasterize(*params, v, K, w, h, sampler="quantile", k=6)
                 sets.append(len(meta["selection"]) if isinstance(meta["selection"], list) else 1)
@@ -198,12 +198,12 @@ def test_gsplat_absgrad_of_a_table_in_row_parts(monkeypatch):
     """gsplat's absgrad sums |dL/dmean2d| per pixel: a table in row parts gives the whole table's
     (the parts' dL/dw are summed before the per-pixel terms, which are not linear in the table)."""
     m, q, s, o, v, K, w, h = make_random_scene(**PART_SCENE)
-    colours = np.random.default_rng(2).random((len(m), PART_CHANNELS)).astype(np.float32)
+    colors = np.random.default_rng(2).random((len(m), PART_CHANNELS)).astype(np.float32)
     out = []
     for limited in (False, True):
         if limited:
             limit_buffers(monkeypatch, 4 * len(m) * PART_CHANNELS // 3 + 64)
-        params = [torch.from_numpy(a).requires_grad_(True) for a in (m, q, s, o, colours)]
+        params = [torch.from_numpy(a).requires_grad_(True) for a in (m, q, s, o, colors)]
         image, _, meta = qr_cl.rasterization(*params, torch.from_numpy(v)[None], torch.from_numpy(K)[None], 16, 12,
                                              sampler="quantile", k=6, absgrad=True)
         meta["means2d"].retain_grad()

@@ -1,7 +1,7 @@
 """Conformance of qr_cl.rasterization with gsplat's own pure-torch reference
 (gsplat/cuda/_torch_impl.py, Apache-2.0; in the test extra, used as an oracle only) on
 the fox and the donut: projection outputs, images, and gradients w.r.t. means2d, conics,
-opacities, colours and the Gaussians, within the tolerances of gsplat's own tests.
+opacities, colors and the Gaussians, within the tolerances of gsplat's own tests.
 
 gsplat's ``_rasterize_to_pixels`` composites through two functions that are not pure torch:
 gsplat's CUDA ``rasterize_to_indices_in_range`` (which Gaussians each pixel blends) and nerfacc's
@@ -137,7 +137,7 @@ def test_projection_matches_gsplat(scene, gsplat_reference):
 
 
 def test_images_and_2d_gradients_match_gsplat(scene, gsplat_reference):
-    """Image and gradients w.r.t. gsplat's rasterizer inputs (means2d, conics, opacities, colours,
+    """Image and gradients w.r.t. gsplat's rasterizer inputs (means2d, conics, opacities, colors,
     background): qr-cl's meta tensors' .grad against torch autograd through gsplat's reference,
     both fed qr-cl's tile intersections; and the gradients w.r.t. the Gaussians against autograd
     through gsplat's projection too."""
@@ -159,7 +159,7 @@ def test_images_and_2d_gradients_match_gsplat(scene, gsplat_reference):
         backgrounds=ref[4])
     ((ref_image * target).sum() + (ref_alpha * target_alpha).sum()).backward()
     # gsplat's tests: 1e-4 for images (a Gaussian at the 1e-4 transmittance stop may be taken by one
-    # float32 walk and not the other: a few pixels differ by up to 1e-4 of a colour) ...
+    # float32 walk and not the other: a few pixels differ by up to 1e-4 of a color) ...
     torch.testing.assert_close(image, ref_image.detach(), rtol=1e-4, atol=1e-4)
     torch.testing.assert_close(alpha, ref_alpha.detach(), rtol=1e-4, atol=1e-4)
     grads = (("means2d", meta["means2d"].grad, ref[0].grad, 5e-3), ("conics", meta["conics"].grad, ref[1].grad, 1e-3),

@@ -1,7 +1,7 @@
 """gsplat parity of qr_cl.rasterization (issue 29): gradients w.r.t. gsplat's 2-D meta tensors
 (means2d, conics, opacities) and AbsGS's absgrad against the float64 twins, packed and dense meta,
 gsplat's tile-intersection layout, radii [C,N,2], gradients w.r.t. viewmats against the twins and
-finite differences, both launch shapes, extra signals through the colours' selection, and
+finite differences, both launch shapes, extra signals through the colors' selection, and
 densification: gsplat's own DefaultStrategy (when gsplat is installed) and the example's."""
 from __future__ import annotations
 
@@ -315,15 +315,15 @@ def test_gpu_launch_shapes_give_the_same_bytes(random_scene, monkeypatch, sample
 @pytest.mark.parametrize("sampler,k", [("volume", 40), ("quantile", 5)])
 def test_extra_signals_share_one_selection(random_scene, monkeypatch, sampler, k):
     """RGB (+ depth) and 64-D extra signals from one call equal two calls (RGB; the signals as
-    colours), values and gradients, with one plan and one selection per camera instead of two."""
+    colors), values and gradients, with one plan and one selection per camera instead of two."""
     from qr_cl.render import engine
     m, q, s, o, v, K, w, h = random_scene
     rng = np.random.default_rng(13)
     colors, signals = rng.random((len(m), 3)).astype(np.float32), rng.normal(size=(len(m), 64)).astype(np.float32)
     viewmats, Ks = turned_cameras(v, K)
     bg = torch.tensor([[0.1, 0.2, 0.3]] * 2)
-    made, select = [], engine.select
-    monkeypatch.setattr(engine, "select", lambda *a, **kw: made.append(1) or select(*a, **kw))
+    made, select = [], engine.deferred_select
+    monkeypatch.setattr(engine, "deferred_select", lambda *a, **kw: made.append(1) or select(*a, **kw))
     one = tensors(m, q, s, o, colors, signals, grad=True)
     image, alpha, meta = qr_cl.rasterization(*one[:5], viewmats, Ks, w, h, sampler=sampler, k=k, backgrounds=bg,
                                              render_mode="RGB+ED", extra_signals=one[5])
@@ -361,7 +361,7 @@ def test_the_examples_densifier_grows_and_prunes(random_scene, monkeypatch):
     m, q, s, o, v, K, w, h = random_scene
     params = {"means": torch.tensor(m), "quats": torch.tensor(q), "log_scales": torch.log(torch.tensor(s)),
               "logit_opacities": torch.logit(torch.tensor(o).clamp(0.05, 0.95)),
-              "colours": torch.full((len(m), 3), 0.5)}
+              "colors": torch.full((len(m), 3), 0.5)}
     for p in params.values():
         p.requires_grad_(True)
     opt = torch.optim.Adam([{"params": [p], "lr": 1e-3} for p in params.values()])
@@ -371,7 +371,7 @@ def test_the_examples_densifier_grows_and_prunes(random_scene, monkeypatch):
         target, _, _ = qr_cl.rasterization(*tensors(m, q, s, o, np.full((len(m), 3), 0.3)), viewmats, Ks, w, h)
     for step in range(7):
         image, _, meta = qr_cl.rasterization(params["means"], params["quats"], params["log_scales"].exp(),
-                                             torch.sigmoid(params["logit_opacities"]), params["colours"],
+                                             torch.sigmoid(params["logit_opacities"]), params["colors"],
                                              viewmats, Ks, w, h)
         opt.zero_grad()
         densifier.before_backward(meta)

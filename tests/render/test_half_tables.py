@@ -72,18 +72,18 @@ def test_the_gradient_of_a_half_table_is_half(random_scene):
 
 @pytest.mark.parametrize("sampler", ["volume", "quantile"])
 def test_geometry_gradients_read_the_half_table(random_scene, sampler):
-    """gsplat's call with float16 colours: the same image and Gaussian gradients as the float32
-    colours of the same values (blend_backward_alpha reads the half rows)."""
+    """gsplat's call with float16 colors: the same image and Gaussian gradients as the float32
+    colors of the same values (blend_backward_alpha reads the half rows)."""
     m, q, s, o, v, K, w, h = random_scene
     _, f16 = tables(len(m), 3)
     out = {}
-    for name, colours in (("half", f16), ("float", f16.float())):
+    for name, colors in (("half", f16), ("float", f16.float())):
         params = [torch.from_numpy(np.asarray(a, np.float32)).requires_grad_(True) for a in (m, q, s, o)]
-        c = colours.clone().requires_grad_(True)
+        c = colors.clone().requires_grad_(True)
         image, _, _ = qr_cl.rasterization(*params, c, torch.from_numpy(v)[None], torch.from_numpy(K)[None], w, h,
                                           sampler=sampler, k=6)
         (image * torch.linspace(0, 1, image.numel()).reshape(image.shape)).sum().backward()
-        assert c.grad.dtype == colours.dtype
+        assert c.grad.dtype == colors.dtype
         out[name] = [image.detach()] + [p.grad for p in params] + [c.grad.half()]   # rounded as a half table's
     for got, want in zip(out["half"], out["float"]):
         assert got.numpy().tobytes() == want.numpy().tobytes()

@@ -159,7 +159,7 @@ def test_bad_shapes_and_modes_raise(random_scene):
         qr_cl.rasterization(*args, torch.tensor(v)[None], torch.tensor(K)[None], w, h, sh_degree=1)
 
 
-def test_sh_colours_and_their_gradients(random_scene):
+def test_sh_colors_and_their_gradients(random_scene):
     m, q, s, o, v, K, w, h = random_scene
     sh = np.random.default_rng(4).normal(0, 0.3, (len(m), 9, 3)).astype(np.float32)
     inputs = tensors(m, q, s, o, sh, grad=True)
@@ -225,7 +225,7 @@ def test_fit_a_small_scene(random_scene):
     assert losses[-1] < 0.3 * losses[0] and psnr[1] > psnr[0] + 5, (losses[0], losses[-1])
 
 
-def test_per_camera_colours_and_no_gaussians(random_scene):
+def test_per_camera_colors_and_no_gaussians(random_scene):
     m, q, s, o, v, K, w, h = random_scene
     colors = np.random.default_rng(7).random((2, len(m), 4)).astype(np.float32)
     viewmats, Ks = turned_cameras(v, K)
@@ -331,14 +331,14 @@ def test_a_row_parts_geometry_gradient_equals_its_twin(random_scene, sampler, k)
 
 def test_pixel_subset_gradients_equal_twin(random_scene):
     """The engine on a pixel subset (View.pixels; the kernels' non-full ray path)."""
-    from qr_cl.render import View, render_view
+    from qr_cl.render import View, checked_runtime, render_view
     m, q, s, o, v, K, w, h = random_scene
     rng = np.random.default_rng(9)
     pixels = rng.integers(0, [w, h], (300, 2)).astype(np.int32)
     colors = rng.random((len(m), 3)).astype(np.float32)
     inputs = tensors(m, q, s, o, colors, grad=True)
     view = View(v, K, w, h, sampler="quantile", k=5, pixels=pixels)
-    out = render_view(*inputs, None, view)
+    out = render_view(*inputs, None, view, rt=checked_runtime())
     image, sel = out.image, out.selections[0]
     target = torch.randn(image.shape)
     (image * target).sum().backward()

@@ -1,4 +1,4 @@
-"""rasterize and render_volume_fused end to end against the twins: colours from SH by the view
+"""rasterize and render_volume_fused end to end against the twins: colors from SH by the view
 direction, empty scenes, named input errors, the real scenes, the render meta."""
 import numpy as np
 import pytest

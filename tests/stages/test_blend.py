@@ -8,7 +8,7 @@ import pytest
 from qr_cl.render import rasterize_plan
 from qr_cl.runtime import channel_layout, memory, padded_rows, shared_array
 from qr_cl.stages import blend as blend_stage
-from qr_cl.stages import blend_backward, blend_forward, blend_ref, render_fused, select
+from qr_cl.stages import blend_backward, blend_forward, blend_ref, deferred_select, render_fused, select
 
 RTOL = 1e-5
 
@@ -75,7 +75,7 @@ def test_backward_bytes_do_not_depend_on_the_kernel(plan, monkeypatch, owners_pe
     dimage = device_rows(plan, rng.standard_normal((sel.n_rays, channels)).astype(np.float32))
     first = blend_backward(sel, dimage, channels).get()
     if owners_per_core == "gather":
-        monkeypatch.setattr(blend_stage, "scatters", lambda sel: False)
+        monkeypatch.setattr(blend_stage, "scatters", lambda sel, views=None: False)
     else:
         monkeypatch.setattr(blend_stage, "OWNERS_PER_CORE", owners_per_core)
     second = blend_backward(sel, dimage, channels).get()
@@ -94,7 +94,7 @@ def test_register_chunks_do_not_change_the_bytes(plan, monkeypatch, acc_floats):
     def outputs():
         image = blend_forward(sel, features, 512)
         with monkeypatch.context() as m:
-            m.setattr(blend_stage, "scatters", lambda sel: False)
+            m.setattr(blend_stage, "scatters", lambda sel, views=None: False)
             grad = blend_backward(sel, image, 512)
         return image.get(), grad.get(), render_fused(plan, features, 512)[0]
 
@@ -149,9 +149,9 @@ def test_pixel_subset_blend_equals_full_rows(plan):
 @pytest.mark.parametrize("sampler", ["quantile", "topk", "stratified"])
 @pytest.mark.parametrize("channels,subset", [(3, False), (37, True), (512, False), (2048, True)])
 def test_deferred_selection_blended_in_its_kernel_equals_select_then_blend(plan, sampler, channels, subset):
-    """select(..., defer=True) followed by blend_forward runs the selection kernel with the blend
+    """deferred_select's kernel run by blend_forward runs the selection kernel with the blend
     fused in (CPU shapes): the same selection and the same image bytes as the two kernels, also
-    with a background and for a pixel subset; ready() alone gives the same selection.
+    with a background and for a pixel subset; the kernel run alone gives the same selection.
 
     Bytes on PoCL. Intel's CPU runtime compiles the selection arithmetic of the fused build apart
     and differs in the last bits (up to 1e-6 absolute here): within 1e-5 of the largest value."""
@@ -164,13 +164,16 @@ def test_deferred_selection_blended_in_its_kernel_equals_select_then_blend(plan,
     pixels = rng.integers(0, [plan.width, plan.height], (300, 2)) if subset else None
     eager = select(plan, sampler, 10, pixels)
     want = blend_forward(eager, features, channels, background).get()
-    deferred = select(plan, sampler, 10, pixels, defer=True)
-    assert deferred.pending is not None
-    got = blend_forward(deferred, features, channels, background).get()
-    assert deferred.pending is None
+    deferred, kernel = deferred_select(plan, sampler, 10, pixels)
+    assert kernel is not None
+    got = blend_forward(deferred, features, channels, background, kernel=kernel).get()
     same(got, want)
     same(blend_forward(deferred, features, channels).get(), blend_forward(eager, features, channels).get())
-    alone = select(plan, sampler, 10, pixels, defer=True).ready()
+    alone, kernel = deferred_select(plan, sampler, 10, pixels)
+    kernel.run()
+    with pytest.raises(ValueError, match="first blend"):
+        blend_forward(alone, features, channels, out=blend_forward(alone, features, channels), accumulate=True,
+                      kernel=kernel)
     for sel in (deferred, alone):
         for key, value in eager.host().items():
             same(sel.host()[key], value, err_msg=key)
@@ -256,12 +259,12 @@ def test_row_parts_add_up_to_the_whole_table(plan, monkeypatch, sampler, k, chan
     background = rng.standard_normal(channels).astype(np.float32)
     rt = plan.runtime
     for defer in (False, True):
-        sel = select(plan, sampler, k, defer=defer)
+        sel, kernel = deferred_select(plan, sampler, k) if defer else (select(plan, sampler, k), None)
         whole = blend_forward(select(plan, sampler, k), cla.to_device(rt.queue, table), channels, background).get()
         image = memory.device_empty(rt, (sel.n_rays, cstride))
         for i, (r0, r1) in enumerate(row_split(n)):
             part = cla.to_device(rt.queue, table[r0:r1])
-            alone = blend_forward(sel, part, channels, row0=r0).get()[:, :channels]   # (makes a deferred sel)
+            alone = blend_forward(sel, part, channels, row0=r0, kernel=None if i else kernel).get()[:, :channels]
             h = sel.host()
             want = blend_ref.blend(h["ids"], h["weights"], table[r0:r1, :channels], row0=r0)
             scale = blend_ref.blend(h["ids"], np.abs(h["weights"]), np.abs(table[:, :channels]))

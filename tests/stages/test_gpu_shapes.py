@@ -43,7 +43,7 @@ def test_sorted_transpose_equals_counting_sort(plan, monkeypatch, sampler, k, su
     for launch in ("cpu", "gpu"):
         monkeypatch.setattr(runtime(), "gpu_shaped", launch == "gpu")
         sel = select(plan, sampler, k, pixels)
-        cursor, t_ray, t_w, t_entry, chunks = transpose(sel)
+        cursor, t_ray, t_w, t_entry, chunks, _ = transpose(sel)
         dimage = np.random.default_rng(2).normal(size=(sel.n_rays, 16)).astype(np.float32)
         grad = blend_backward(sel, cla.to_device(runtime().queue, dimage), 16).get()
         shapes[launch] = segment_ends(cursor.get(), chunks), t_ray.get(), t_w.get(), t_entry.get(), chunks, grad

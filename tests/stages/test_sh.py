@@ -1,4 +1,4 @@
-"""SH colours (sh.cl) and their backward against the float64 twin (qr_cl.stages.sh_ref)."""
+"""SH colors (sh.cl) and their backward against the float64 twin (qr_cl.stages.sh_ref)."""
 import numpy as np
 import pytest
 import torch
@@ -10,7 +10,7 @@ from tests.twins import hostile_scene
 
 
 @pytest.mark.parametrize("degree", [0, 1, 2, 3])
-def test_sh_colours_match_reference(degree):
+def test_sh_colors_match_reference(degree):
     g = hostile_scene(n=300, seed=degree, degree=degree)
     campos = np.array([0.3, -0.2, -1.0])
     rt = runtime()
@@ -22,9 +22,9 @@ def test_sh_colours_match_reference(degree):
 @pytest.mark.parametrize("degree", [0, 1, 2, 3])
 def test_sh_backward_matches_the_twins_autograd(degree):
     """sh_backward (sh.cl) against autograd of the float64 twin: d coefficients and d means,
-    including Gaussians whose colour is clamped at 0 (no gradient through the clamp)."""
+    including Gaussians whose color is clamped at 0 (no gradient through the clamp)."""
     g = hostile_scene(n=300, seed=degree, degree=degree)
-    g.sh[::10] -= 3.0                                            # some colours clamped at 0
+    g.sh[::10] -= 3.0                                            # some colors clamped at 0
     campos = np.array([0.3, -0.2, -1.0], np.float32)
     rt = runtime()
     means = to_device(rt, g.means)

@@ -15,7 +15,7 @@ def plan(random_scene):
 
 def test_transpose_groups_entries_by_gaussian(plan):
     sel = select(plan, "quantile", 6)
-    cursor, t_ray, t_w, t_entry, chunks = transpose(sel)
+    cursor, t_ray, t_w, t_entry, chunks, _ = transpose(sel)
     ends = cursor.get()[chunks - 1::chunks]
     h = sel.host()
     counts = np.bincount(h["ids"][h["ids"] >= 0], minlength=sel.n_gaussians)

@@ -20,7 +20,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from ...render.selfcheck import checked_runtime
+from ...render import checked_runtime
 from ..arguments import positive_int
 from ..timing import Stopwatch
 from . import roofline

@@ -23,7 +23,7 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
-from ...render.selfcheck import checked_runtime
+from ...render import checked_runtime
 from ...runtime import channel_layout
 from ..images import plt
 from ..renderers import SamplerRenderer

@@ -13,8 +13,7 @@ import numpy as np
 import pyopencl.array as cla
 import torch
 
-from ...render import rasterization, rasterize
-from ...render.selfcheck import checked_runtime
+from ...render import checked_runtime, rasterization, rasterize
 from ...runtime import channel_layout, host_pool, padded_rows, shared_array, to_device, trim_device_pool
 from ...stages import RasterPlan, bin_and_sort, blend_backward, blend_forward, project, render_fused, select
 from ..renderers import FUSED_NAME, FeatureRenderer

@@ -25,11 +25,10 @@ from tqdm import tqdm
 
 from ...runtime import channel_layout, device_zeros, to_device
 from ...scene import Camera, Gaussians
-from ...stages import RasterPlan, blend_backward
+from ...stages import RasterPlan, Selection, blend_backward
 from ..scenes.folders import SceneData, unit_rows
 from ..timing import Stopwatch
 from ..training.rays import camera_plan
-from ..training.selections import CompactSelection
 from .contributors import top_contributors
 
 #: Dr.Splat's top-k contributors per pixel.
@@ -109,11 +108,12 @@ def mask_weight_sums(plan: RasterPlan, pixels: np.ndarray, ids: np.ndarray, weig
         np.add.at(dimage, (hit, level[hit]), 1.0)
     dimage[:, n_masks] = 1.0
     compact = np.where(valid, np.searchsorted(rows, np.maximum(ids, 0)), -1).astype(np.int32)
-    per_ray = [device_zeros(rt, n_rays, np.float32) for _ in range(3)]           # transmittances: unread
-    sel = CompactSelection(plan, "topk", k, np.ascontiguousarray(pixels, np.int32),
-                           to_device(rt, compact.ravel(), np.int32), to_device(rt, weights.ravel(), np.float32),
-                           to_device(rt, np.arange(0, n_rays * k, k), np.int32),
-                           to_device(rt, valid.sum(1), np.int32), *per_ray, n_rows=len(rows))
+    t_walk, t_sel, t_rem = (device_zeros(rt, n_rays, np.float32) for _ in range(3))   # transmittances: unread
+    sel = Selection(plan=plan, sampler="topk", k=k, pixels=np.ascontiguousarray(pixels, np.int32),
+                    ids=to_device(rt, compact.ravel(), np.int32), weights=to_device(rt, weights.ravel(), np.float32),
+                    offsets=to_device(rt, np.arange(0, n_rays * k, k), np.int32),
+                    count=to_device(rt, valid.sum(1), np.int32), t_walk=t_walk, t_sel=t_sel, t_rem=t_rem,
+                    n_rows=len(rows))
     return rows, blend_backward(sel, to_device(rt, dimage), channels).get()[:, :channels]
 
 

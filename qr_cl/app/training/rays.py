@@ -8,7 +8,7 @@ of the Gaussians they use (a compact [U,C] table) and rendered through the selec
 into it (:func:`rays_loss`); the gradient flows back through those U rows only."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
@@ -17,10 +17,10 @@ import torch.nn.functional as F
 
 from ...render import SelectionCache, blend, rasterize_plan
 from ...scene import Camera, Gaussians
-from ...stages import RasterPlan, Selection, select
+from ...stages import BackwardViews, RasterPlan, Selection, select
 from ..scenes.folders import Frame, SceneData
 from .loss import cosine_logits, head_cosine_logits
-from .selections import CompactSelection, compact_selections, concat_selections, gather_rays
+from .selections import compact_selections, concat_selections, gather_rays
 
 
 class RaySettings(Protocol):
@@ -76,17 +76,19 @@ class StepRays:
     compact feature table.
 
     ``rows`` [U] int64: the Gaussians any of the rays selects (ascending), the table's rows;
-    ``selection``: the rays of all views, view after view, as one CompactSelection of U rows (one
+    ``selection``: the rays of all views, view after view, as one compact selection of U rows (one
     blend, one backward); per view ``targets`` [P] int64 (each ray's mask row) and
     ``mask_features`` [M,C] float32 (the view's unit mask features). ``n_gaussians`` is the
-    scene's N.
+    scene's N. ``views``: what the selection's blend backward reads of it, kept here (made ahead
+    by :func:`qr_cl.stages.prepare_backward` where a trainer does so).
     """
 
     rows: np.ndarray
-    selection: CompactSelection
+    selection: Selection
     targets: list[np.ndarray]
     mask_features: list[np.ndarray]
     n_gaussians: int
+    views: BackwardViews = field(default_factory=BackwardViews)
 
     @property
     def n_rays(self) -> int:
@@ -128,7 +130,7 @@ def rays_loss(rays: StepRays, table: torch.Tensor, temperature: float, head: tor
     if table.ndim != 2 or table.shape[0] != len(rays.rows):
         raise ValueError(f"table must be [{len(rays.rows)}, C] (one row per Gaussian in rays.rows), "
                          f"got {tuple(table.shape)}")
-    rendered, sizes = blend(rays.selection, table), [len(t) for t in rays.targets]
+    rendered, sizes = blend(rays.selection, table, views=rays.views), [len(t) for t in rays.targets]
     masks = [torch.from_numpy(m) for m in rays.mask_features]
     logits = cosine_logits(rendered, sizes, masks, temperature) if head is None else \
         head_cosine_logits(rendered, head, sizes, masks, temperature)

@@ -1,10 +1,10 @@
 """Selections as a training step uses them: subsets of a view's rays gathered from its whole-image
 selection, several views' rays as one selection, and ids re-indexed into a compact table of the
-Gaussians a step uses (features are computed for those rows only). Device arrays come from the
-runtime's pool."""
+Gaussians a step uses (features are computed for those rows only). Each is made by
+:func:`derived` from the selection it comes from. Device arrays come from the runtime's pool."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+import dataclasses
 
 import numpy as np
 import pyopencl.array as cla
@@ -13,17 +13,17 @@ from ...runtime import Runtime, device_empty, device_zeros, to_device
 from ...stages import Selection
 
 
-@dataclass
-class CompactSelection(Selection):
-    """A Selection whose entry ids index a compact table of ``n_rows`` rows (see
-    :func:`compact_selections`) instead of the plan's Gaussians: blend it with features
-    [n_rows, C]; the blend backward then returns dF [n_rows, C]."""
-
-    n_rows: int = 0
-
-    @property
-    def n_gaussians(self) -> int:
-        return self.n_rows
+def derived(source: Selection, **fields) -> Selection:
+    """A new Selection of ``source``'s plan, sampler and K with ``fields`` (keyword-only: any of
+    pixels, ids, weights, offsets, count, t_walk, t_sel, t_rem and n_rows, as
+    :class:`qr_cl.stages.Selection` documents them) in place of its own, the others shared: the one
+    way this module makes a Selection. A compact selection (``n_rows`` set) indexes a table of
+    n_rows rows (:func:`compact_selections`): blend it with features [n_rows, C]; its blend
+    backward returns dF [n_rows, C]."""
+    fixed = {"plan", "sampler", "k"} & fields.keys()
+    if fixed:
+        raise ValueError(f"a derived selection keeps its source's {sorted(fixed)}")
+    return dataclasses.replace(source, **fields)
 
 
 def ray_entries(offsets: np.ndarray, count: np.ndarray) -> np.ndarray:
@@ -73,9 +73,10 @@ def gather_rays(selection: Selection, rays) -> Selection:
     rt = selection.plan.runtime
     n = len(rays)
     if n == 0:
-        return Selection(selection.plan, selection.sampler, selection.k, pixels, device_empty(rt, 1, np.int32),
-                         device_empty(rt, 1, np.float32), device_zeros(rt, 1, np.int32),
-                         *(device_zeros(rt, 1, dt) for dt in (np.int32, np.float32, np.float32, np.float32)))
+        count, t_walk, t_sel, t_rem = (device_zeros(rt, 1, dt) for dt in (np.int32, np.float32, np.float32, np.float32))
+        return derived(selection, pixels=pixels, ids=device_empty(rt, 1, np.int32),
+                       weights=device_empty(rt, 1, np.float32), offsets=device_zeros(rt, 1, np.int32), count=count,
+                       t_walk=t_walk, t_sel=t_sel, t_rem=t_rem)
     k = selection.k
     if selection.sampler == "volume":
         all_offsets, all_count = selection.spans()
@@ -91,15 +92,15 @@ def gather_rays(selection: Selection, rays) -> Selection:
         index = to_device(rt, source, np.int32)
         ids, weights = _take(rt, selection.ids, index), _take(rt, selection.weights, index)
     ray_index = to_device(rt, rays, np.int32)
-    per_ray = [_take(rt, a, ray_index) for a in (selection.count, selection.t_walk, selection.t_sel, selection.t_rem)]
-    return Selection(selection.plan, selection.sampler, k, pixels, ids, weights, to_device(rt, offsets, np.int32),
-                     *per_ray)
+    per_ray = {name: _take(rt, getattr(selection, name), ray_index) for name in ("count", "t_walk", "t_sel", "t_rem")}
+    return derived(selection, pixels=pixels, ids=ids, weights=weights, offsets=to_device(rt, offsets, np.int32),
+                   **per_ray)
 
 
-def remap_ids(selection: Selection, lut: np.ndarray, n_rows: int) -> CompactSelection:
+def remap_ids(selection: Selection, lut: np.ndarray, n_rows: int) -> Selection:
     """``selection`` with every entry id g replaced by ``lut[g]`` (lut [N] integer, values in
-    0..n_rows-1 for every Gaussian an entry uses), as a :class:`CompactSelection` of ``n_rows``
-    rows sharing the other device arrays. Padding slots of dense rows become -1."""
+    0..n_rows-1 for every Gaussian an entry uses), as a compact selection of ``n_rows`` rows
+    (:func:`derived`) sharing the other device arrays. Padding slots of dense rows become -1."""
     return _remap(selection, *_host_entries(selection), lut, n_rows)
 
 
@@ -109,7 +110,7 @@ def _host_entries(selection: Selection) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _remap(selection: Selection, ids: np.ndarray, entries: np.ndarray, lut: np.ndarray,
-           n_rows: int) -> CompactSelection:
+           n_rows: int) -> Selection:
     used = ids[entries]
     if used.size and (used.min() < 0 or used.max() >= len(lut)):
         raise ValueError(f"lut has {len(lut)} rows; the selection uses ids up to {used.max()}")
@@ -118,16 +119,13 @@ def _remap(selection: Selection, ids: np.ndarray, entries: np.ndarray, lut: np.n
         raise ValueError(f"lut maps the selection's ids outside 0..{n_rows - 1}")
     remapped = np.full(ids.shape, -1, np.int32)
     remapped[entries] = mapped
-    return CompactSelection(selection.plan, selection.sampler, selection.k, selection.pixels,
-                            to_device(selection.plan.runtime, remapped, np.int32), selection.weights,
-                            selection.offsets, selection.count, selection.t_walk, selection.t_sel, selection.t_rem,
-                            n_rows=int(n_rows))
+    return derived(selection, ids=to_device(selection.plan.runtime, remapped, np.int32), n_rows=int(n_rows))
 
 
-def compact_selections(selections: list[Selection]) -> tuple[np.ndarray, list[CompactSelection]]:
+def compact_selections(selections: list[Selection]) -> tuple[np.ndarray, list[Selection]]:
     """The Gaussians that ``selections`` (of one scene: the same N) use, and the selections
-    re-indexed into them: (rows [U] int64, the used Gaussian ids ascending; one
-    :class:`CompactSelection` of U rows per input). Blending a compact selection with
+    re-indexed into them: (rows [U] int64, the used Gaussian ids ascending; one compact selection
+    of U rows per input). Blending a compact selection with
     ``features[rows]`` [U,C] gives the image blending the original with ``features`` [N,C] gives
     (the same entries in the same order), and its backward's dF [U,C] are the rows ``rows`` of
     the original's dF (the others are zero)."""
@@ -151,14 +149,14 @@ def concat_selections(selections: list[Selection]) -> Selection:
     is ray (rays of parts before j) + i, with the same entries, weights and transmittances, so one
     blend (and one backward, one transpose) serves them all and its image rows are the parts'
     images stacked. The result keeps the first part's plan (runtime, N) and every part's
-    ``pixels`` (each in its own view's image); it is a CompactSelection when the parts are."""
+    ``pixels`` (each in its own view's image); it is compact when the parts are (of one n_rows)."""
     if not selections:
         raise ValueError("no selections to concatenate")
     first = selections[0]
     if any(s.pixels is None for s in selections):
         raise ValueError("concat_selections takes pixel subsets (gather_rays makes one from a whole image)")
-    if any((s.sampler, s.k, s.n_gaussians, type(s)) != (first.sampler, first.k, first.n_gaussians, type(first))
-           for s in selections):
+    if any((s.sampler, s.k, s.n_gaussians, s.n_rows is None) != (first.sampler, first.k, first.n_gaussians,
+                                                                  first.n_rows is None) for s in selections):
         raise ValueError("the selections differ in sampler, K, Gaussians or kind")
     parts = [s for s in selections if s.n_rays]
     if not parts:
@@ -169,6 +167,5 @@ def concat_selections(selections: list[Selection]) -> Selection:
     entries = {name: _concatenate(rt, [getattr(s, name) for s in parts]) for name in ("ids", "weights")}
     per_ray = {name: _concatenate(rt, [getattr(s, name)[:s.n_rays] for s in parts])
                for name in ("count", "t_walk", "t_sel", "t_rem")}
-    extra = {"n_rows": first.n_rows} if isinstance(first, CompactSelection) else {}
-    return type(first)(first.plan, first.sampler, first.k, np.concatenate([s.pixels for s in parts]),
-                       offsets=to_device(rt, offsets, np.int32), **entries, **per_ray, **extra)
+    return derived(first, pixels=np.concatenate([s.pixels for s in parts]), offsets=to_device(rt, offsets, np.int32),
+                   **entries, **per_ray)

@@ -45,7 +45,7 @@ import os
 import signal
 import sys
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from functools import partial
 from pathlib import Path
 
@@ -128,8 +128,7 @@ class Trainer:
         what the blend backward needs of them made too (:func:`prepare_backward`): geometry only,
         so it can run while the network of the previous step does."""
         rays = step_rays(self.scenes[scene], self.cfg, np.random.default_rng([self.cfg.seed, step, slot]), self.views)
-        prepare_backward(rays.selection)
-        return rays
+        return replace(rays, views=prepare_backward(rays.selection))
 
     def prefetch(self, step: int) -> None:
         """Start making the rays of ``step`` on a background thread (one slot at a time). Call it

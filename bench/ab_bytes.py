@@ -1,0 +1,104 @@
+"""Bytes of the renderer's outputs and gradients, for checking that a change leaves them unchanged.
+
+Renders a seeded procedural scene through every public path (rasterize with each sampler, whole
+image and a pixel subset, with gradients w.r.t. features and Gaussians; a cached selection
+rendered and back-propagated twice; rasterization with SH, RGB+ED and absgrad; the fused
+V-Render; a training step's gathered, concatenated and compacted selection with its transpose
+made ahead) and saves every array. Run it under each install, then compare::
+
+    PYTHONPATH=/path/to/other/checkout python bench/ab_bytes.py save before.npz
+    python bench/ab_bytes.py save after.npz
+    python bench/ab_bytes.py compare before.npz after.npz
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+
+import numpy as np
+
+
+def outputs() -> dict[str, np.ndarray]:
+    """Every output and gradient of the renders above, by name."""
+    import torch
+
+    import qr_cl
+    from qr_cl.app.scenes.procedural import procedural_scene
+    from qr_cl.app.training.selections import compact_selections, concat_selections, gather_rays
+    from qr_cl.render import SelectionCache, blend, rasterize_plan
+    from qr_cl.scene import orbit_cameras
+    from qr_cl.stages import prepare_backward, select
+    out = {}
+    g = procedural_scene(3000)
+    W, H = 96, 64
+    cam = orbit_cameras(g.means, 8, W, H)[1]
+    rng = np.random.default_rng(0)
+    feats = rng.standard_normal((len(g), 19)).astype(np.float32)
+    pixels = rng.integers(0, [W, H], (500, 2))
+    geo = [np.asarray(a, np.float32) for a in (g.means, g.quats, g.scales, g.opacities)]
+    for sampler, k in (("volume", 0), ("quantile", 8), ("topk", 6), ("stratified", 7)):
+        for px in (None, pixels):
+            params = [torch.from_numpy(a.copy()).requires_grad_(True) for a in geo + [feats]]
+            img, alpha, _ = qr_cl.rasterize(*params, cam.viewmat, cam.K, W, H, sampler=sampler, k=max(k, 1),
+                                            pixels=px, background=np.ones(19, np.float32))
+            (img * torch.linspace(-1, 1, img.numel()).reshape(img.shape)).sum().backward()
+            tag = f"{sampler}-{px is None}"
+            out[tag + "-img"] = img.detach().numpy()
+            out[tag + "-alpha"] = alpha.detach().numpy()
+            for i, p in enumerate(params):
+                out[f"{tag}-g{i}"] = p.grad.numpy()
+    # cached renders, twice, with backward
+    cache = SelectionCache(1 << 30)
+    for rep in range(2):
+        f = torch.from_numpy(feats.copy()).requires_grad_(True)
+        img, _, _ = qr_cl.rasterize(*geo, f, cam.viewmat, cam.K, W, H, sampler="quantile", k=8, cache=cache)
+        (img ** 2).sum().backward()
+        out[f"cached{rep}-img"], out[f"cached{rep}-grad"] = img.detach().numpy(), f.grad.numpy()
+    # gsplat call with SH and absgrad
+    sh = rng.standard_normal((len(g), 16, 3)).astype(np.float32) * 0.3
+    params = [torch.from_numpy(a.copy()).requires_grad_(True) for a in geo + [sh]]
+    colors, _, meta = qr_cl.rasterization(*params, torch.from_numpy(cam.viewmat)[None], torch.from_numpy(cam.K)[None],
+                                          W, H, sh_degree=3, render_mode="RGB+ED", absgrad=True, sampler="topk", k=5)
+    meta["means2d"].retain_grad()
+    (colors * torch.linspace(0, 1, colors.numel()).reshape(colors.shape)).sum().backward()
+    out["gs-colors"] = colors.detach().numpy()
+    for i, p in enumerate(params):
+        out[f"gs-g{i}"] = p.grad.numpy()
+    out["gs-absgrad"] = meta["means2d"].absgrad.numpy()
+    img, _, meta = qr_cl.render_volume_fused(*geo, feats, cam.viewmat, cam.K, W, H)
+    out["fused-img"], out["fused-depth"] = img.numpy(), np.asarray(meta["depth"])
+    # training selections: gather, concat, compact, blend + backward with the transpose made ahead
+    plan = rasterize_plan(*geo, cam.viewmat, cam.K, W, H)
+    whole = select(plan, "quantile", 8)
+    parts = [gather_rays(whole, rng.integers(0, W * H, 300)) for _ in range(2)]
+    rows, (compact,) = compact_selections([concat_selections(parts)])
+    views = prepare_backward(compact)            # None where an install's selections kept their own
+    table = torch.from_numpy(feats[rows].copy()).requires_grad_(True)
+    r = blend(compact, table) if views is None else blend(compact, table, views=views)
+    (r * torch.linspace(-1, 1, r.numel()).reshape(r.shape)).sum().backward()
+    out["train-img"], out["train-grad"] = r.detach().numpy(), table.grad.numpy()
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    sub.add_parser("save").add_argument("out")
+    compare = sub.add_parser("compare")
+    compare.add_argument("a")
+    compare.add_argument("b")
+    args = parser.parse_args()
+    if args.command == "save":
+        arrays = outputs()
+        np.savez(args.out, **arrays)
+        print(f"{len(arrays)} arrays -> {args.out}")
+        return
+    a, b = np.load(args.a), np.load(args.b)
+    differ = sorted(set(a.files) ^ set(b.files)) + [k for k in sorted(set(a.files) & set(b.files))
+                                                      if a[k].dtype != b[k].dtype or a[k].tobytes() != b[k].tobytes()]
+    print(f"{len(a.files)} and {len(b.files)} arrays; differing: {differ or 'none'}")
+    sys.exit(1 if differ else 0)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,114 @@
+"""The package's import graph, read with ast (nothing imported): no circle among the modules of
+qr_cl/render (top-level and function-local imports alike), and no module taking a name of another
+module that is private (a leading underscore) or, across packages, missing from the ``__all__``
+of the package holding it."""
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+#: Where each package's sources lie (qr_cl.backbone is installed from backbone/, setup.cfg).
+SOURCES = {"qr_cl": ROOT / "qr_cl", "qr_cl.backbone": ROOT / "backbone"}
+
+
+def modules() -> dict[str, Path]:
+    """Every module of the package by dotted name (a package as its ``__init__``)."""
+    found = {}
+    for prefix, folder in SOURCES.items():
+        for path in sorted(folder.rglob("*.py")):
+            parts = list(path.relative_to(folder).with_suffix("").parts)
+            if parts[-1] == "__init__":
+                parts.pop()
+            found[".".join([prefix, *parts])] = path
+    return found
+
+
+def is_package(path: Path) -> bool:
+    return path.name == "__init__.py"
+
+
+def declared_all(path: Path) -> list[str] | None:
+    """The literal ``__all__`` of a module, or None when it has none."""
+    for node in ast.parse(path.read_text()).body:
+        if isinstance(node, ast.Assign) and any(isinstance(t, ast.Name) and t.id == "__all__" for t in node.targets):
+            return list(ast.literal_eval(node.value))
+    return None
+
+
+def imports(name: str, path: Path) -> list[tuple[int, str, list[str]]]:
+    """(line, absolute module, names) of every ``from ... import`` and ``import`` in the module
+    ``name``, at any depth (function-local ones too)."""
+    package = name if is_package(path) else name.rpartition(".")[0]
+    out = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom):
+            base = package
+            for _ in range(node.level - 1):
+                base = base.rpartition(".")[0]
+            target = node.module or "" if not node.level else ".".join(p for p in (base, node.module) if p)
+            out.append((node.lineno, target, [alias.name for alias in node.names]))
+        elif isinstance(node, ast.Import):
+            out += [(node.lineno, alias.name, []) for alias in node.names]
+    return out
+
+
+def edges(mods: dict[str, Path], within: str) -> dict[str, set[str]]:
+    """The modules under ``within`` each module under it imports (a ``from pkg import module``
+    counts as importing that module)."""
+    graph: dict[str, set[str]] = {m: set() for m in mods if m.startswith(within + ".")}
+    for m in graph:
+        for _, target, names in imports(m, mods[m]):
+            for t in [target, *(f"{target}.{n}" for n in names)]:
+                if t in graph and t != m:
+                    graph[m].add(t)
+    return graph
+
+
+def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """A circle through each module that lies on one (depth-first search)."""
+    found, state = [], {}
+
+    def visit(node: str, stack: list[str]) -> None:
+        state[node] = 1
+        for nxt in sorted(graph[node]):
+            if state.get(nxt) == 1:
+                found.append(stack[stack.index(nxt):] + [nxt])
+            elif nxt not in state:
+                visit(nxt, stack + [nxt])
+        state[node] = 2
+
+    for node in sorted(graph):
+        if node not in state:
+            visit(node, [node])
+    return found
+
+
+def private_imports(mods: dict[str, Path], importers: dict[str, Path]) -> list[str]:
+    """``file:line name from module`` of each import of a private or unexported name."""
+    bad = []
+    for m, path in importers.items():
+        own_package = m if is_package(path) else m.rpartition(".")[0]
+        for line, target, names in imports(m, path):
+            if target not in mods:
+                continue
+            holder = target if is_package(mods[target]) else target.rpartition(".")[0]
+            exported = declared_all(mods[holder]) if holder in mods and holder != own_package else None
+            for n in names:
+                if f"{target}.{n}" in mods:                # a module, not a name in one
+                    continue
+                if n.startswith("_") or (exported is not None and n not in exported):
+                    bad.append(f"{path.relative_to(ROOT)}:{line} {n} from {target}")
+    return bad
+
+
+def test_render_has_no_import_circle():
+    found = cycles(edges(modules(), "qr_cl.render"))
+    assert not found, "import circles in qr_cl/render: " + "; ".join(" -> ".join(c) for c in found)
+
+
+def test_modules_import_only_public_names():
+    mods = modules()
+    bench = {f"bench.{p.stem}": p for p in sorted((ROOT / "bench").glob("*.py"))}
+    bad = private_imports(mods, {**mods, **bench})
+    assert not bad, "private or unexported names imported across modules:\n  " + "\n  ".join(bad)
