@@ -4,18 +4,20 @@ Renders a seeded procedural scene through every public path (rasterize with each
 image and a pixel subset, with gradients w.r.t. features and Gaussians; a cached selection
 rendered and back-propagated twice; rasterization with SH, RGB+ED and absgrad; the fused
 V-Render; a training step's gathered, concatenated and compacted selection with its transpose
-made ahead) and saves every array. Run it under each install, then compare::
+made ahead) under each install and compares every array's bytes (exit status 1 when any differs)::
 
-    PYTHONPATH=/path/to/other/checkout python bench/ab_bytes.py save before.npz
-    python bench/ab_bytes.py save after.npz
-    python bench/ab_bytes.py compare before.npz after.npz
+    python bench/ab_bytes.py --base PYTHON_OR_CHECKOUT
 """
 from __future__ import annotations
 
 import argparse
 import sys
+import tempfile
+from pathlib import Path
 
 import numpy as np
+
+from ab import add_base_option, installs
 
 
 def outputs() -> dict[str, np.ndarray]:
@@ -80,24 +82,33 @@ def outputs() -> dict[str, np.ndarray]:
     return out
 
 
+def differing(a: dict[str, np.ndarray], b: dict[str, np.ndarray]) -> list[str]:
+    """Names of the arrays only one side has, or whose dtype or bytes differ."""
+    return sorted(set(a) ^ set(b)) + [k for k in sorted(set(a) & set(b))
+                                      if a[k].dtype != b[k].dtype or a[k].tobytes() != b[k].tobytes()]
+
+
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    sub = parser.add_subparsers(dest="command", required=True)
-    sub.add_parser("save").add_argument("out")
-    compare = sub.add_parser("compare")
-    compare.add_argument("a")
-    compare.add_argument("b")
-    args = parser.parse_args()
-    if args.command == "save":
-        arrays = outputs()
-        np.savez(args.out, **arrays)
-        print(f"{len(arrays)} arrays -> {args.out}")
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    add_base_option(ap, required=True)
+    ap.add_argument("--worker", help=argparse.SUPPRESS)      # the npz file to write: render, save
+    args = ap.parse_args()
+    if args.worker:
+        np.savez(args.worker, **outputs())
         return
-    a, b = np.load(args.a), np.load(args.b)
-    differ = sorted(set(a.files) ^ set(b.files)) + [k for k in sorted(set(a.files) & set(b.files))
-                                                      if a[k].dtype != b[k].dtype or a[k].tobytes() != b[k].tobytes()]
-    print(f"{len(a.files)} and {len(b.files)} arrays; differing: {differ or 'none'}")
-    sys.exit(1 if differ else 0)
+    with installs(args.base) as runs_of, tempfile.TemporaryDirectory(prefix="qr-cl-ab-") as tmp:
+        arrays = {}
+        for install in runs_of:
+            out = Path(tmp) / f"{install.label}.npz"
+            proc = install.run([str(Path(__file__).resolve()), "--base", args.base, "--worker", str(out)],
+                               capture_output=True, text=True, cwd=tmp)
+            if proc.returncode:
+                sys.exit(f"{install.label} run failed:\n{proc.stderr[-3000:]}")
+            with np.load(out) as f:
+                arrays[install.label] = {k: f[k] for k in f.files}
+    bad = differing(arrays["base"], arrays["this"])
+    print(f"{len(arrays['base'])} and {len(arrays['this'])} arrays; differing: {bad or 'none'}")
+    sys.exit(1 if bad else 0)
 
 
 if __name__ == "__main__":
