@@ -1,9 +1,10 @@
 /* Shared math of the qr-cl kernels, in the original 3DGS conventions (see docs/design.md).
 
    The constants TILE (tile side in px), WALK_ALL (a window past every list), ALPHA_MIN (smaller
-   alphas are skipped), ALPHA_MAX (alpha clamp), T_MIN (V-Render stops before T would drop to it)
-   and the SH basis constants SH_C0, SH_C1, SH_C2_0..4, SH_C3_0..6 are defined by the build (-D),
-   from qr_cl/runtime/constants.py; from the device, by Runtime: ACC_FLOATS (the floats of a row
+   alphas are skipped), ALPHA_MAX (alpha clamp), T_MIN (V-Render stops before T would drop to it),
+   the SH basis constants SH_C0, SH_C1, SH_C2_0..4, SH_C3_0..6 and the layouts of the splat
+   (SPLAT_*) and the footprint (FOOTPRINT_*, SPAN_ROWS) are defined by the build (-D), from
+   qr_cl/runtime/constants.py; from the device, by Runtime: ACC_FLOATS (the floats of a row
    kept in registers, see RV), GROUP_RAYS (the rays of a tile walk's work-group) and BLEND_GROUP
    (the work-items of a GPU blend's work-group). */
 #ifndef QR_CL_COMMON_H

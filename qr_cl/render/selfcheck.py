@@ -23,7 +23,8 @@ import torch
 
 from ..runtime import SAMPLERS, NoDeviceError, Runtime, runtime
 from ..runtime.constants import KERNEL_CONSTANTS
-from ..runtime.device import implementation, kernel_files, kernel_source, self_check_enabled
+from ..runtime.device import implementation, self_check_enabled
+from ..runtime.sources import kernel_files, kernel_source
 from ..scene import look_at
 from ..stages import blend_ref, select_ref, vrender_ref
 

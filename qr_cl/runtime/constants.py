@@ -1,7 +1,7 @@
 """The constants of the 3DGS conventions and of qr-cl, defined once.
 
 The kernels see the same values: every program is built with ``-D NAME=value`` for each entry of
-:data:`KERNEL_CONSTANTS` (see :mod:`qr_cl.runtime.device`), so ``kernels/common.h`` defines none.
+:data:`KERNEL_CONSTANTS` (see :mod:`qr_cl.runtime.context`), so ``kernels/common.h`` defines none.
 """
 from __future__ import annotations
 
