@@ -9,7 +9,7 @@ __kernel void emit_keys(const int n, __global const int16 *footprints, __global 
                         __global ulong *keys, __global int *values) {
     const int i = get_global_id(0);
     if (i >= n) return;
-    const ulong depth_bits = (ulong)as_uint(splats[i].s6);
+    const ulong depth_bits = (ulong)as_uint(splats[i].SPLAT_DEPTH);
     int out = offsets[i];
     FOR_TILE_SPANS(i, footprints[i], ty, x,
         for (int tx = x.x; tx < x.y; tx++) {

@@ -270,9 +270,9 @@ __kernel void blend_backward_alpha(const int n_rays, const int full, const int w
    order of the transpose: alpha = opacity exp(-sigma) (entries clamped to ALPHA_MAX have none),
    sigma = 0.5 (A dx^2 + C dy^2) + B dx dy with (dx, dy) = mean2d - pixel centre, so
    dL/dsigma = -alpha dL/dalpha, dsigma/dmean2d = (A dx + B dy, B dx + C dy) and
-   dsigma/d(A, B, C) = (dx^2 / 2, dx dy, dy^2 / 2). d_splats[g] = (d mean2d x, y, d A, B, C,
-   d opacity, |d mean2d x|, |d mean2d y|): the last two sum the absolute value of each entry's
-   (each pixel's) term, gsplat's "absgrad". One work-item per Gaussian, over the window of its
+   dsigma/d(A, B, C) = (dx^2 / 2, dx dy, dy^2 / 2). d_splats[g] = the gradient of mean2d, conic
+   and opacity, and absgrad (common.h): the sums of the absolute value of each entry's (each
+   pixel's) d mean2d term, gsplat's "absgrad". One work-item per Gaussian, over the window of its
    entries (a window after the first adds to d_splats). */
 __kernel void splat_backward(const int n, const int n_chunks, __global const int *cursor,
                              __global const int *t_ray, __global const int *t_entry,
@@ -288,17 +288,19 @@ __kernel void splat_backward(const int n, const int n_chunks, __global const int
     float8 d = first ? (float8)(0.f) : d_splats[g];
     for (int j = span.x; j < span.y; j++) {
         const float2 pix = ray_pixel(t_ray[j], full, width, pixels);
-        const float dx = s.s0 - pix.x, dy = s.s1 - pix.y;
-        const float e = exp_neg(splat_sigma(s.s2, s.s3, s.s4, dx, dy)), raw = s.s5 * e;
+        const float dx = s.SPLAT_MEAN_X - pix.x, dy = s.SPLAT_MEAN_Y - pix.y;
+        const float e = exp_neg(splat_sigma(s.SPLAT_CONIC_A, s.SPLAT_CONIC_B, s.SPLAT_CONIC_C, dx, dy));
+        const float raw = s.SPLAT_OPACITY * e;
         if (!(raw <= ALPHA_MAX)) continue;           /* clamped: alpha does not move */
         const float da = d_alpha[t_entry[j]], dsig = -da * raw;
-        const float2 dm = dsig * (float2)(s.s2 * dx + s.s3 * dy, s.s3 * dx + s.s4 * dy);
-        d.s01 += dm;
-        d.s67 += fabs(dm);
-        d.s2 += dsig * 0.5f * dx * dx;
-        d.s3 += dsig * dx * dy;
-        d.s4 += dsig * 0.5f * dy * dy;
-        d.s5 += da * e;
+        const float2 dm = dsig * (float2)(s.SPLAT_CONIC_A * dx + s.SPLAT_CONIC_B * dy,
+                                          s.SPLAT_CONIC_B * dx + s.SPLAT_CONIC_C * dy);
+        d.SPLAT_MEAN += dm;
+        d.SPLAT_ABSGRAD += fabs(dm);
+        d.SPLAT_CONIC_A += dsig * 0.5f * dx * dx;
+        d.SPLAT_CONIC_B += dsig * dx * dy;
+        d.SPLAT_CONIC_C += dsig * 0.5f * dy * dy;
+        d.SPLAT_OPACITY += da * e;
     }
     d_splats[g] = d;
 }

@@ -1,13 +1,22 @@
 /* Shared math of the qr-cl kernels, in the original 3DGS conventions (see docs/design.md).
 
    The constants TILE (tile side in px), WALK_ALL (a window past every list), ALPHA_MIN (smaller
-   alphas are skipped), ALPHA_MAX (alpha clamp), T_MIN (V-Render stops before T would drop to it)
-   and the SH basis constants SH_C0, SH_C1, SH_C2_0..4, SH_C3_0..6 are defined by the build (-D),
-   from qr_cl/runtime/constants.py; from the device, by Runtime: ACC_FLOATS (the floats of a row
+   alphas are skipped), ALPHA_MAX (alpha clamp), T_MIN (V-Render stops before T would drop to it),
+   the SH basis constants SH_C0, SH_C1, SH_C2_0..4, SH_C3_0..6 and the layouts of the splat
+   (SPLAT_*) and the footprint (FOOTPRINT_*, SPAN_ROWS) are defined by the build (-D), from
+   qr_cl/runtime/constants.py; from the device, by Runtime: ACC_FLOATS (the floats of a row
    kept in registers, see RV), GROUP_RAYS (the rays of a tile walk's work-group) and BLEND_GROUP
    (the work-items of a GPU blend's work-group). */
 #ifndef QR_CL_COMMON_H
 #define QR_CL_COMMON_H
+
+/* ---- the splat: a Gaussian as project.cl writes it and the walks read it ----
+   A float8 whose fields are swizzles named by the build (-D, from SplatLayout in
+   qr_cl/runtime/constants.py): s.SPLAT_MEAN (mean2d, px; .._X, .._Y), s.SPLAT_CONIC (conic
+   a, b, c, the inverse 2D covariance; .._A, .._B, .._C), s.SPLAT_OPACITY, s.SPLAT_DEPTH (camera
+   z) and s.SPLAT_SIGMA_MAX (ln(opacity / ALPHA_MIN)). A splat's gradient d has the same fields,
+   with d.SPLAT_ABSGRAD (.._X, .._Y: the sums of |d mean2d x|, |d mean2d y|) in the slots of depth
+   and sigma_max. */
 
 /* Gaussian density exponent at offset d = mean2d - pixel: 0.5 (a dx^2 + c dy^2) + b dx dy,
    with conic (a, b, c) the inverse 2D covariance. */
@@ -73,9 +82,10 @@ static inline float2 ray_pixel(int p, int full, int width, __global const int2 *
 /* alpha'_i of a splat at pixel centre (px, py): min(0.99, opacity exp(-sigma)), or 0 when the
    Gaussian is skipped (sigma < 0 or alpha < 1/255). */
 static inline float splat_alpha(float8 s, float px, float py) {
-    const float sig = splat_sigma(s.s2, s.s3, s.s4, s.s0 - px, s.s1 - py);
+    const float sig = splat_sigma(s.SPLAT_CONIC_A, s.SPLAT_CONIC_B, s.SPLAT_CONIC_C, s.SPLAT_MEAN_X - px,
+                                  s.SPLAT_MEAN_Y - py);
     if (sig < 0.f) return 0.f;
-    const float a = min(ALPHA_MAX, s.s5 * exp_neg(sig));
+    const float a = min(ALPHA_MAX, s.SPLAT_OPACITY * exp_neg(sig));
     return a < ALPHA_MIN ? 0.f : a;
 }
 
@@ -178,8 +188,8 @@ static inline int2 block_rays(int b, int full, __global const int2 *ranges, __gl
 
 /* The Gaussian exponent sigma of splat s at the lanes' pixel centres (splat_sigma, as vectors). */
 static inline lanef block_sigma(float8 s, lanef px, lanef py) {
-    const lanef dx = s.s0 - px, dy = s.s1 - py;
-    return 0.5f * (s.s2 * dx * dx + s.s4 * dy * dy) + s.s3 * dx * dy;
+    const lanef dx = s.SPLAT_MEAN_X - px, dy = s.SPLAT_MEAN_Y - py;
+    return 0.5f * (s.SPLAT_CONIC_A * dx * dx + s.SPLAT_CONIC_C * dy * dy) + s.SPLAT_CONIC_B * dx * dy;
 }
 
 /* Declares px, py, row and range (the tile list) of the block of this work-item, in a kernel
@@ -192,14 +202,14 @@ static inline lanef block_sigma(float8 s, lanef px, lanef py) {
 
 /* splat_alpha of splat s from its exponents sig, as vectors (the same expression). */
 static inline lanef block_alpha(float8 s, lanef sig) {
-    const lanef a = fmin((lanef)(ALPHA_MAX), s.s5 * exp_neg_lanes(sig));
+    const lanef a = fmin((lanef)(ALPHA_MAX), s.SPLAT_OPACITY * exp_neg_lanes(sig));
     return select(a, (lanef)(0.f), (sig < 0.f) | (a < ALPHA_MIN));
 }
 
 /* Whether splat s may be blended in some lane: an exponent at most sigma_max = ln(opacity /
-   ALPHA_MIN) (s.s7, from project.cl) plus a margin far above float rounding. When no lane is
-   below it, every alpha would be skipped and the walk skips the exp. */
-#define MAY_BLEND(s, sig) lanes_any((sig) <= (s).s7 + 1e-3f)
+   ALPHA_MIN) (from project.cl) plus a margin far above float rounding. When no lane is below it,
+   every alpha would be skipped and the walk skips the exp. */
+#define MAY_BLEND(s, sig) lanes_any((sig) <= (s).SPLAT_SIGMA_MAX + 1e-3f)
 
 /* The V-Render walk of a block over the list positions [from, to): for each Gaussian g (splat s,
    list position i_) that some lane blends, in depth order, runs the statements ... with lanei use
@@ -326,8 +336,9 @@ static inline int2 tile_ray(int full, __global const int2 *ranges, __global cons
 /* The alpha'_i of splat s at (px, py), 0 when skipped: a ray's block_alpha, whose Gaussians
    beyond sigma_max (MAY_BLEND) have alphas below ALPHA_MIN, skipped here without the exp. */
 static inline float ray_alpha(float8 s, float px, float py) {
-    const float sig = splat_sigma(s.s2, s.s3, s.s4, s.s0 - px, s.s1 - py);
-    return sig <= s.s7 + 1e-3f ? splat_alpha(s, px, py) : 0.f;
+    const float sig = splat_sigma(s.SPLAT_CONIC_A, s.SPLAT_CONIC_B, s.SPLAT_CONIC_C, s.SPLAT_MEAN_X - px,
+                                  s.SPLAT_MEAN_Y - py);
+    return sig <= s.SPLAT_SIGMA_MAX + 1e-3f ? splat_alpha(s, px, py) : 0.f;
 }
 
 /* The V-Render walk of one ray over the batches of TILE_WALK: for each Gaussian it blends, runs
@@ -348,8 +359,8 @@ static inline float ray_alpha(float8 s, float px, float py) {
 
 /* ---- tile spans: the tiles of each tile row that a splat's blend ellipse reaches ----
 
-   A pixel blends splat s only where sigma <= sigma_max (s.s7): inside the ellipse
-   a dx^2 + 2 b dx dy + c dy^2 <= 2 L of its conic (a, b, c) = (s.s2, s.s3, s.s4), d = pixel - mean.
+   A pixel blends splat s only where sigma <= sigma_max: inside the ellipse
+   a dx^2 + 2 b dx dy + c dy^2 <= 2 L of its conic (a, b, c), d = pixel - mean.
    Its chord on the line at height dy is (-b dy -/+ sqrt(2 L a - det dy^2)) / a, det = a c - b^2,
    and its x-extremes +/-e_x (e_x = sqrt(2 L c / det)) lie at dy = -/+ b e_x / c. The part of the
    ellipse in a band of rows is convex, so its x-extent is that of the chords on the band's two
@@ -377,12 +388,12 @@ typedef struct {
 
 static inline span_t span_of(float8 s) {
     span_t e;
-    const float a = s.s2, b = s.s3, c = s.s4;
-    e.mx = s.s0; e.my = s.s1; e.inv_a = 1.f / a; e.slope = -b * e.inv_a;
+    const float a = s.SPLAT_CONIC_A, b = s.SPLAT_CONIC_B, c = s.SPLAT_CONIC_C;
+    e.mx = s.SPLAT_MEAN_X; e.my = s.SPLAT_MEAN_Y; e.inv_a = 1.f / a; e.slope = -b * e.inv_a;
     e.det = a * c - b * b;
     const float inv_det = 1.f / e.det, cond = a * c * inv_det;
     e.whole = !(e.det > SPAN_DET_MIN && cond <= SPAN_COND_MAX);
-    const float L = (s.s7 + SPAN_SLACK) * (1.f + SPAN_ROUNDING * FLT_EPSILON * cond);
+    const float L = (s.SPLAT_SIGMA_MAX + SPAN_SLACK) * (1.f + SPAN_ROUNDING * FLT_EPSILON * cond);
     e.e_x = sqrt(2.f * L * c * inv_det);
     e.two_la = 2.f * L * a;
     e.dy_x = b * e.e_x / c;
@@ -424,22 +435,25 @@ static inline void tile_spans(const span_t *e, int4 rect, int ty0, int tiles_x, 
     *x1 = select((lanei)(rect.x), b, keep);
 }
 
-/* A Gaussian's footprint (int16, 64 bytes, from project.cl): its tile rectangle (s0123 =
-   [x0, y0, x1, y1)) and, when spans_stored, the tiles [x0, x1) of its rows as SPAN_ROWS ushorts
-   (x0 - rect x0) | (x1 - rect x0) << 8 from its 9th ushort on. The binning passes read the
-   footprints in depth order, gathered into one stream (gather_footprints). */
-#define SPAN_ROWS 24   /* the 48 bytes after the rectangle */
+/* A Gaussian's footprint (int16, 64 bytes, from project.cl; layout from the build, -D, as in
+   qr_cl/runtime/constants.py): its tile rectangle [x0, y0, x1, y1) from int FOOTPRINT_RECT and,
+   when spans_stored, the tiles [x0, x1) of its rows as SPAN_ROWS ushorts (x0 - rect x0) |
+   (x1 - rect x0) << 8 from int FOOTPRINT_SPANS on. The binning passes read the footprints in depth
+   order, gathered into one stream (gather_footprints). */
 static inline int spans_stored(int4 rect) { return rect.w - rect.y <= SPAN_ROWS && rect.z - rect.x <= 255; }
+/* The rectangle of footprint fp, and a pointer to its first span. */
+#define FOOTPRINT_RECT_OF(fp) vload4(0, (__private const int *)&(fp) + FOOTPRINT_RECT)
+#define FOOTPRINT_SPANS_OF(fp) ((__private const ushort *)((__private const int *)&(fp) + FOOTPRINT_SPANS))
 
 /* for (each row ty of the rectangle of footprint fp of Gaussian g) { int2 x = its tiles [x0, x1);
    ... }: from the stored spans, or computed again from splats[g] (the same values). Needs splats
    and tiles_x in scope. */
 #define FOR_TILE_SPANS(g, fp, ty, x, ...) \
     const int16 fp_ = (fp); \
-    const int4 rect_ = fp_.s0123; \
+    const int4 rect_ = FOOTPRINT_RECT_OF(fp_); \
     if (spans_stored(rect_)) { \
         for (int ty = rect_.y; ty < rect_.w; ty++) { \
-            const int row_ = ((__private const ushort *)&fp_)[8 + ty - rect_.y]; \
+            const int row_ = FOOTPRINT_SPANS_OF(fp_)[ty - rect_.y]; \
             const int2 x = rect_.x + (int2)(row_ & 0xff, row_ >> 8); \
             __VA_ARGS__ \
         } \

@@ -129,7 +129,7 @@ static inline int touched_tiles(float8 s, int4 rect, int tiles_x, ushort *rows) 
     return touched;
 }
 
-/* Outputs per Gaussian: splat = (mean2d.x, mean2d.y, conic a, b, c, opacity, depth, sigma_max),
+/* Outputs per Gaussian: splat (mean2d, conic, opacity, depth and sigma_max; common.h),
    radii (x, y) in pixels (the half-sides of the opacity-aware box it is binned within, at most
    the 3-sigma radius; (0, 0) = culled), footprint (common.h: the tile rectangle [x0, y0, x1, y1)
    and its rows' tile spans), tiles touched (the tiles of those spans) and its depth key (the bits
@@ -183,9 +183,13 @@ __kernel void project(const int n,
     for (int l = 0; l < TILE && i0 + l < n; l++) {
         const int i = i0 + l;
         const int4 rect = (int4)(LANE_I(x0, l), LANE_I(y0, l), LANE_I(x1, l), LANE_I(y1, l));
-        const float8 splat = (float8)(LANE(mean_x, l), LANE(mean_y, l), LANE(c11, l) * LANE(inv, l),
-                                      -LANE(c01, l) * LANE(inv, l), LANE(c00, l) * LANE(inv, l),
-                                      LANE(opacity, l), LANE(e.pz, l), LANE(sigma_max, l));
+        float8 splat = (float8)(0.f);
+        splat.SPLAT_MEAN = (float2)(LANE(mean_x, l), LANE(mean_y, l));
+        splat.SPLAT_CONIC = (float3)(LANE(c11, l) * LANE(inv, l), -LANE(c01, l) * LANE(inv, l),
+                                     LANE(c00, l) * LANE(inv, l));
+        splat.SPLAT_OPACITY = LANE(opacity, l);
+        splat.SPLAT_DEPTH = LANE(e.pz, l);
+        splat.SPLAT_SIGMA_MAX = LANE(sigma_max, l);
         ushort rows[SPAN_ROWS] = {0};
         const int touched = LANE_I(visible, l) ? touched_tiles(splat, rect, tiles_x, rows) : 0;
         if (touched <= 0) {
@@ -199,8 +203,9 @@ __kernel void project(const int n,
         splats[i] = splat;
         radii[i] = (int2)((int)fmin(LANE(ext_x, l), RADIUS_MAX), (int)fmin(LANE(ext_y, l), RADIUS_MAX));
         __global int *footprint = (__global int *)(footprints + i);
-        vstore4(rect, 0, footprint);
-        for (int k = 0; k < SPAN_ROWS / 8; k++) vstore8(vload8(k, rows), k, (__global ushort *)(footprint + 4));
+        vstore4(rect, 0, footprint + FOOTPRINT_RECT);
+        for (int k = 0; k < SPAN_ROWS / 8; k++)
+            vstore8(vload8(k, rows), k, (__global ushort *)(footprint + FOOTPRINT_SPANS));
         tiles_touched[i] = touched;
         depth_keys[i] = as_int(LANE(e.pz, l));
     }
@@ -228,9 +233,10 @@ static inline void gaussian_backward(int i, const ewa1_t *e_, __global const flo
     /* conic (A, B, C) = inverse of [[a, b], [b, c]] -> d (a, b, c) */
     const float det = e.c.x * e.c.z - e.c.y * e.c.y;
     const float A = e.c.z / det, B = -e.c.y / det, C = e.c.x / det;
-    const float ga = -(d.s2 * A * A + d.s3 * A * B + d.s4 * B * B);
-    const float gb = -(2.f * d.s2 * A * B + d.s3 * (A * C + B * B) + 2.f * d.s4 * B * C);
-    const float gc = -(d.s2 * B * B + d.s3 * B * C + d.s4 * C * C);
+    const float dA = d.SPLAT_CONIC_A, dB = d.SPLAT_CONIC_B, dC = d.SPLAT_CONIC_C;
+    const float ga = -(dA * A * A + dB * A * B + dC * B * B);
+    const float gb = -(2.f * dA * A * B + dB * (A * C + B * B) + 2.f * dC * B * C);
+    const float gc = -(dA * B * B + dB * B * C + dC * C * C);
 
     /* cov2d = J cov J^T with rows J0 = (j00, 0, j02), J1 = (0, j11, j12) */
     const float3 J0 = (float3)(e.j.x, 0.f, e.j.y), J1 = (float3)(0.f, e.j.z, e.j.w);
@@ -277,9 +283,10 @@ static inline void gaussian_backward(int i, const ewa1_t *e_, __global const flo
     const float3 p = e.p;
     const float z2 = p.z * p.z, tx = -e.j.y * z2 / fx, ty = -e.j.w * z2 / fy;
     const float dtx = -dJ0.z * fx / z2, dty = -dJ1.z * fy / z2;
-    float3 dp = (float3)(d.s0 * fx / p.z, d.s1 * fy / p.z,
-                         d.s6 - dJ0.x * fx / z2 + 2.f * dJ0.z * fx * tx / (z2 * p.z) - dJ1.y * fy / z2
-                         + 2.f * dJ1.z * fy * ty / (z2 * p.z) - (d.s0 * fx * p.x + d.s1 * fy * p.y) / z2);
+    const float dmx = d.SPLAT_MEAN_X, dmy = d.SPLAT_MEAN_Y;
+    float3 dp = (float3)(dmx * fx / p.z, dmy * fy / p.z,
+                         d.SPLAT_DEPTH - dJ0.x * fx / z2 + 2.f * dJ0.z * fx * tx / (z2 * p.z) - dJ1.y * fy / z2
+                         + 2.f * dJ1.z * fy * ty / (z2 * p.z) - (dmx * fx * p.x + dmy * fy * p.y) / z2);
     if (e.clamped.x) dp.z += dtx * tx / p.z; else dp.x += dtx;
     if (e.clamped.y) dp.z += dty * ty / p.z; else dp.y += dty;
     vstore3((float3)(wt[0] * dp.x + wt[1] * dp.y + wt[2] * dp.z, wt[3] * dp.x + wt[4] * dp.y + wt[5] * dp.z,
@@ -302,8 +309,9 @@ static inline void gaussian_backward(int i, const ewa1_t *e_, __global const flo
     }
 }
 
-/* Backward of the projection, TILE Gaussians per work-item (as project): d_splats[i] = (d mean2d x,
-   y, d conic A, B, C, unread, d depth, unread) (the opacity passes the projection unchanged) ->
+/* Backward of the projection, TILE Gaussians per work-item (as project): d_splats[i] = the gradient
+   of the splat's mean2d, conic and depth (its opacity and sigma_max are not read: the opacity
+   passes the projection unchanged) ->
    d means [N,3], d quats [N,4] (of the unit-quaternion formula), d scales [N,3] and, when
    view_grads, each Gaussian's share of d viewmat, d_views [N,12] (rows 0..2 of the 3x4 [W | t]).
    Culled Gaussians (radii 0) get zeros. The chain, with c = (a, b, c) the 2D covariance and

@@ -23,7 +23,8 @@ __kernel void fma_peak(const int n, __global float *out, const float x) {
         a0 = fma(a0, m, c); a1 = fma(a1, m, c); a2 = fma(a2, m, c); a3 = fma(a3, m, c);
         a4 = fma(a4, m, c); a5 = fma(a5, m, c); a6 = fma(a6, m, c); a7 = fma(a7, m, c);
     }
-    float16 s = a0 + a1 + a2 + a3 + a4 + a5 + a6 + a7;
-    out[get_global_id(0)] = s.s0 + s.s1 + s.s2 + s.s3 + s.s4 + s.s5 + s.s6 + s.s7 + s.s8 + s.s9
-                            + s.sa + s.sb + s.sc + s.sd + s.se + s.sf;
+    const float16 s = a0 + a1 + a2 + a3 + a4 + a5 + a6 + a7;
+    float sum = 0.f;                                  /* its 16 lanes, in order */
+    for (int k = 0; k < 16; k++) sum += ((__private const float *)&s)[k];
+    out[get_global_id(0)] = sum;
 }

@@ -90,7 +90,7 @@ __kernel void vrender(VRENDER_ARGS) {
                 LANE(T, l) = st.x; LANE(depth_sum, l) = st.y; LANE_I(done, l) = st.z != 0.f ? -1 : 0;
             }
     VOLUME_WALK(from, to, px, py, row, T, done,
-        depth_sum += w * s.s6;
+        depth_sum += w * s.SPLAT_DEPTH;
         if ((uint)g - (uint)row0 < (uint)n_rows) {    /* a Gaussian of this row part */
             batch_id[count] = g - row0;
             batch_w[count] = w;                        /* w_i = T_i alpha'_i */
@@ -133,7 +133,7 @@ __kernel void tile_vrender(VRENDER_ARGS) {
     #pragma unroll
     for (int v = 0; v < NV; v++) acc[v] = p >= 0 && !(first && !accumulate) ? VLOAD(v, out) : (vec_t)(0.f);
     RAY_VOLUME_WALK(from, to, T, done,
-        depth_sum += w * s.s6;
+        depth_sum += w * s.SPLAT_DEPTH;
         if ((uint)g - (uint)row0 < (uint)n_rows) {
             __global const ROW_T *f = features + (size_t)(g - row0) * cstride + c0;
             for (int v = 0; v < NV; v++) acc[v] += w * RLOAD(v, f);

@@ -17,7 +17,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from ..runtime import (Runtime, channel_layout, check_channels, device_empty, device_rows, host_empty, row_parts,
+from ..runtime import (SPLAT, SPLAT_FLOATS, Runtime, channel_layout, check_channels, device_empty, device_rows, host_empty, row_parts,
                        shared_array, table_parts, to_device)
 from ..stages import (BackwardViews, RasterPlan, Selection, SelectionKernel, blend_backward, blend_backward_alpha,
                       blend_forward, project_backward, rows_to_half, sh_backward, sh_colors, splat_backward,
@@ -182,15 +182,15 @@ class ProjectFunction(torch.autograd.Function):
         splats = np.stack([plan.splats.get() for plan in plans])
         ctx.plans, ctx.views = plans, views
         ctx.save_for_backward(means, quats, scales, viewmats)
-        return (_to_tensor(splats[..., :2], means), _to_tensor(splats[..., 2:5], means),
-                _to_tensor(splats[..., 6], means))
+        return (_to_tensor(splats[..., SPLAT.mean], means), _to_tensor(splats[..., SPLAT.conic], means),
+                _to_tensor(splats[..., SPLAT.depth], means))
 
     @staticmethod
     def backward(ctx, d_means2d: torch.Tensor, d_conics: torch.Tensor, d_depths: torch.Tensor):
         means, quats, scales, viewmats = ctx.saved_tensors
         rt = ctx.plans[0].runtime
-        d_splats = np.zeros((len(ctx.plans), means.shape[0], 8), np.float32)
-        for cols, grad in ((slice(0, 2), d_means2d), (slice(2, 5), d_conics), (6, d_depths)):
+        d_splats = np.zeros((len(ctx.plans), means.shape[0], SPLAT_FLOATS), np.float32)
+        for cols, grad in ((SPLAT.mean, d_means2d), (SPLAT.conic, d_conics), (SPLAT.depth, d_depths)):
             if grad is not None:
                 d_splats[..., cols] = host_rows(grad)
         dev = [to_device(rt, host_rows(t)) for t in (means, quats, scales)]
@@ -253,9 +253,9 @@ class RasterFunction(torch.autograd.Function):
         if any(ctx.needs_input_grad[:3]):
             d_splats = _splat_grads(sel, features, background, grad_image, grad_alpha, ctx.views)
             splat_grads = [_to_tensor(d_splats[:, cols], grad_image) if need else None
-                           for cols, need in zip((slice(0, 2), slice(2, 5), 5), ctx.needs_input_grad[:3])]
+                           for cols, need in zip((SPLAT.mean, SPLAT.conic, SPLAT.opacity), ctx.needs_input_grad[:3])]
             if ctx.absgrad is not None and ctx.needs_input_grad[0]:
-                ctx.absgrad(d_splats[:, 6:8])
+                ctx.absgrad(d_splats[:, SPLAT.absgrad])
         d_features = _feature_grad(sel, grad_image, features.shape[1], features.dtype, ctx.views) \
             if ctx.needs_input_grad[3] else None
         d_background = _background_grad(sel, grad_image) if ctx.needs_input_grad[4] else None
@@ -264,8 +264,8 @@ class RasterFunction(torch.autograd.Function):
 
 def _splat_grads(sel: Selection, features: torch.Tensor, background: torch.Tensor | None,
                  grad_image: torch.Tensor, grad_alpha: torch.Tensor | None, views: BackwardViews) -> np.ndarray:
-    """dL/dsplats [N,8] float32 on the host (d mean2d x, y; d conic A, B, C; d opacity; the sums of
-    |d mean2d x|, |d mean2d y| over the entries) of :class:`RasterFunction`: weight_grads of each
+    """dL/dsplats [N,8] float32 on the host (d mean2d, d conic, d opacity and absgrad, the sums of
+    |d mean2d x|, |d mean2d y| over the entries, in the slots of :data:`~qr_cl.runtime.SPLAT`) of :class:`RasterFunction`: weight_grads of each
     row part of the table -> blend_backward_alpha -> splat_backward."""
     rt = sel.plan.runtime
     channels = features.shape[1]

@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..runtime import ALPHA_MIN, TILE, device_zeros, to_device
+from ..runtime import ALPHA_MIN, SPLAT, SPLAT_FLOATS, TILE, device_zeros, to_device
 from ..stages import RasterPlan, check_sampler, select
 from .autograd import AbsGradSink, View
 from .engine import Render, Splats2D, gaussian_tensors, project_view, render_view, sh_colors
@@ -236,8 +236,9 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor
         absgrad: gsplat's AbsGS option: after backward, ``meta["means2d"].absgrad`` (the shape of
             meta["means2d"]) holds per Gaussian the sum over the pixels (the selection's entries)
             of the absolute per-pixel dL/dmean2d, x and y apart (px^-1 units of the loss); it
-            accumulates over backward passes as ``.grad`` does, and a render split into channel
-            groups (too large for one device buffer) adds each group's absolute values.
+            accumulates over backward passes as ``.grad`` does. It is summed per pixel before any
+            split: a render whose table is split into row parts (too large for one device buffer)
+            adds the parts' dL/dw per entry first, then takes the absolute values.
         channel_chunk: accepted for compatibility; it has no effect (the channels are blended
             together).
         sampler, k (qr-cl's own): "volume" (gsplat's alpha blending, the default), "quantile"
@@ -347,11 +348,12 @@ def _plan_of_meta(means2d: torch.Tensor, conics: torch.Tensor, opacities: torch.
     [start, end) into ids [M] (rows, depth-sorted per tile)."""
     rt = checked_runtime()
     rows = means2d.shape[0]
-    splats = np.zeros((max(rows, 1), 8), np.float32)          # one unused row when there are none
-    splats[:rows, :2], splats[:rows, 2:5] = means2d.detach().cpu().numpy(), conics.detach().cpu().numpy()
-    splats[:rows, 5] = opacities.detach().cpu().numpy()
+    splats = np.zeros((max(rows, 1), SPLAT_FLOATS), np.float32)   # one unused row when there are none
+    splats[:rows, SPLAT.mean] = means2d.detach().cpu().numpy()
+    splats[:rows, SPLAT.conic] = conics.detach().cpu().numpy()
+    splats[:rows, SPLAT.opacity] = opacities.detach().cpu().numpy()
     with np.errstate(divide="ignore", invalid="ignore"):
-        splats[:, 7] = np.log(splats[:, 5] / ALPHA_MIN)         # sigma_max, as project.cl
+        splats[:, SPLAT.sigma_max] = np.log(splats[:, SPLAT.opacity] / ALPHA_MIN)   # as project.cl
     return RasterPlan(rt, width, height, to_device(rt, splats), device_zeros(rt, (len(splats), 2), np.int32),
                       to_device(rt, ranges, np.int32), to_device(rt, ids if len(ids) else np.zeros(1), np.int32),
                       len(ids))

@@ -1,19 +1,24 @@
-"""The OpenCL runtime layer: device choice, context and queue, program cache and kernel launcher,
-device memory helpers (pooled device arrays, zero-copy host sharing, the host pool of large
-outputs), and the constants shared with the kernels."""
-from .constants import ALPHA_MAX, ALPHA_MIN, MAX_CHANNELS, SAMPLERS, SH_C0, T_MIN, TILE, WALK_ALL
-from .device import (BLOCK_GROUP, DeviceLimitError, NoDeviceError, Runtime, choose_device, device_kind, list_devices,
-                     loop_limit, runtime, trial_run, walk_windows)
+"""The OpenCL runtime layer, one job a module: device choice and probes (device), the Runtime:
+context, queue, program cache and kernel launcher (context), the kernels' sources (sources),
+feature-row layout (rows), device memory and sharing host arrays with the kernels (memory), large
+host arrays (host_memory), and the constants and layouts shared with the kernels (constants)."""
+from .constants import (ALPHA_MAX, ALPHA_MIN, FOOTPRINT_INTS, FOOTPRINT_RECT, FOOTPRINT_SPANS, MAX_CHANNELS, SAMPLERS,
+                        SH_C0, SPAN_ROWS, SPLAT, SPLAT_FLOATS, T_MIN, TILE, WALK_ALL, SplatLayout)
+from .context import BLOCK_GROUP, Runtime, runtime
+from .device import (DeviceLimitError, NoDeviceError, choose_device, device_kind, list_devices, loop_limit, trial_run,
+                     walk_windows)
+from .host_memory import HostMemoryError, HostPool, host_empty, host_pool
+from .memory import (BufferLimitError, check_buffer, device_empty, device_rows, device_scan_works, device_zeros,
+                     exclusive_scan, last_value, row_parts, shared_array, streamed, table_parts, to_device, trim_device_pool)
+from .rows import channel_layout, check_channels, padded_rows, padded_vector
 from .constants import (KERNEL_CONSTANTS, SH_C1, SH_C2, SH_C3, SPAN_COND_MAX, SPAN_DET_MIN, SPAN_MARGIN_PX,
                         SPAN_MARGIN_REL, SPAN_ROUNDING, SPAN_SLACK)
-from .device import implementation, kernel_files, kernel_source, self_check_enabled
+from .device import implementation, self_check_enabled
 from .implementations import environment, installed
-from .memory import (BufferLimitError, HostMemoryError, HostPool, channel_layout, check_buffer, check_channels, device_empty,
-                     device_rows, device_scan_works, device_zeros, exclusive_scan, host_empty, host_pool, last_value,
-                     padded_rows, padded_vector, row_parts, shared_array, streamed, table_parts, to_device,
-                     trim_device_pool)
+from .sources import kernel_files, kernel_source
 
 __all__ = ["ALPHA_MAX", "BLOCK_GROUP", "ALPHA_MIN", "MAX_CHANNELS", "SAMPLERS", "SH_C0", "T_MIN", "TILE",
+           "FOOTPRINT_INTS", "FOOTPRINT_RECT", "FOOTPRINT_SPANS", "SPAN_ROWS", "SPLAT", "SPLAT_FLOATS", "SplatLayout",
            "BufferLimitError", "DeviceLimitError", "HostMemoryError", "HostPool", "NoDeviceError", "Runtime", "check_buffer", "channel_layout",
            "check_channels", "choose_device", "device_empty", "device_kind", "device_rows", "device_scan_works", "device_zeros",
            "exclusive_scan", "host_empty", "host_pool", "last_value", "list_devices", "loop_limit",

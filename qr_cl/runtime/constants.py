@@ -1,9 +1,11 @@
 """The constants of the 3DGS conventions and of qr-cl, defined once.
 
 The kernels see the same values: every program is built with ``-D NAME=value`` for each entry of
-:data:`KERNEL_CONSTANTS` (see :mod:`qr_cl.runtime.device`), so ``kernels/common.h`` defines none.
+:data:`KERNEL_CONSTANTS` (see :mod:`qr_cl.runtime.context`), so ``kernels/common.h`` defines none.
 """
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import numpy as np
 
@@ -33,6 +35,52 @@ WALK_ALL = 2**31 - 1
 #: Samplers of the selection stage (``qr_cl.stages.select``): which Gaussians a ray blends.
 SAMPLERS = ("volume", "quantile", "topk", "stratified")
 
+
+class SplatLayout(NamedTuple):
+    """Where the fields of a Gaussian's splat lie in its float8 (slot numbers): the splat
+    project.cl writes and every walk reads, and its gradient (``d_splats``, the same slots: d mean,
+    d conic, d opacity, d depth) except that blend.cl's splat_backward sums absgrad, gsplat's
+    per-Gaussian sums of |d mean2d x|, |d mean2d y|, into the slots of depth and sigma_max.
+
+    Python indexes a splat array [..., 8] with the fields (``splats[..., SPLAT.mean]``); the
+    kernels get them as swizzles by :meth:`defines` (``s.SPLAT_OPACITY`` is slot 5 of splat ``s``).
+    """
+
+    mean: slice = slice(0, 2)        # mean2d (x, y), px
+    conic: slice = slice(2, 5)       # conic (a, b, c) = the inverse 2D covariance [[a, b], [b, c]]
+    opacity: int = 5
+    depth: int = 6                   # camera z
+    sigma_max: int = 7               # ln(opacity / ALPHA_MIN): beyond this exponent alpha is skipped
+    absgrad: slice = slice(6, 8)     # of a gradient only: sum |d mean2d x|, sum |d mean2d y|
+
+    def defines(self) -> dict[str, str]:
+        """``SPLAT_<FIELD>`` -> the OpenCL C swizzle of its slots (``s01``), and for the fields of
+        several slots each slot alone: ``SPLAT_MEAN_X``, ``_Y``; ``SPLAT_CONIC_A``, ``_B``, ``_C``;
+        ``SPLAT_ABSGRAD_X``, ``_Y``."""
+        parts = {"mean": "XY", "conic": "ABC", "absgrad": "XY"}
+        out = {}
+        for name, where in self._asdict().items():
+            slots = range(SPLAT_FLOATS)[where] if isinstance(where, slice) else [where]
+            out[f"SPLAT_{name.upper()}"] = "s" + "".join(f"{k:x}" for k in slots)
+            for part, k in zip(parts.get(name, ""), slots):
+                out[f"SPLAT_{name.upper()}_{part}"] = f"s{k:x}"
+        return out
+
+
+#: Floats of a splat (an OpenCL float8).
+SPLAT_FLOATS = 8
+#: The splat's layout (see :class:`SplatLayout`).
+SPLAT = SplatLayout()
+
+#: A Gaussian's footprint (project.cl writes it, the binning passes read it): 16 int32 (an OpenCL
+#: int16, 64 bytes) holding its tile rectangle [x0, y0, x1, y1) and, from int FOOTPRINT_SPANS.start
+#: on, the tiles [x0, x1) of up to SPAN_ROWS of its tile rows as ushorts (x0 - rect x0) |
+#: (x1 - rect x0) << 8 (kernels/common.h: FOR_TILE_SPANS).
+FOOTPRINT_INTS = 16
+FOOTPRINT_RECT = slice(0, 4)
+FOOTPRINT_SPANS = slice(4, FOOTPRINT_INTS)
+SPAN_ROWS = 2 * (FOOTPRINT_SPANS.stop - FOOTPRINT_SPANS.start)
+
 #: Real spherical-harmonic basis constants (original 3DGS computeColorFromSH), degrees 0..3.
 SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199
@@ -58,6 +106,9 @@ def _kernel_constants() -> dict[str, str]:
            "SH_C0": _float_literal(SH_C0), "SH_C1": _float_literal(SH_C1)}
     for name, values in (("SH_C2", SH_C2), ("SH_C3", SH_C3)):
         out.update({f"{name}_{i}": _float_literal(v) for i, v in enumerate(values)})
+    out.update(SPLAT.defines())
+    out.update({"FOOTPRINT_RECT": str(FOOTPRINT_RECT.start), "FOOTPRINT_SPANS": str(FOOTPRINT_SPANS.start),
+                "SPAN_ROWS": str(SPAN_ROWS)})
     return out
 
 

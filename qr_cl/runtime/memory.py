@@ -1,8 +1,5 @@
-"""Device and host memory shared by every stage: feature-row layout, pooled device arrays,
-zero-copy host<->device sharing, the host pool of large outputs, and the one exclusive scan.
-
-Features and images live on the device as rows of ``cstride`` floats (see
-:func:`channel_layout`); the first ``channels`` floats of a row are meaningful.
+"""Device memory shared by every stage: pooled device arrays, zero-copy host<->device sharing,
+tables split into row parts that fit a device buffer, and the one exclusive scan.
 
 Allocation-free calls. Every array a stage allocates per call comes from pools, so a warm call
 allocates (and page-faults) nothing:
@@ -18,9 +15,7 @@ allocates (and page-faults) nothing:
   part's rows by :func:`table_parts`). On a device that shares host memory
   (``rt.host_unified``: CPU devices) they wrap the host array in a USE_HOST_PTR buffer (no
   copy); elsewhere they copy through a pooled device array.
-* large host outputs: :func:`host_empty` takes arrays from the process-wide :class:`HostPool`,
-  which reuses one only when nothing outside the pool references it any more (no array, view or
-  torch tensor from ``torch.from_numpy``), so an output never aliases memory a caller holds.
+* large host outputs: ``host_empty`` (:mod:`qr_cl.runtime.host_memory`).
 
 Typical stage code::
 
@@ -36,8 +31,6 @@ from __future__ import annotations
 
 import math
 import os
-import sys
-import threading
 import warnings
 from contextlib import contextmanager
 from functools import lru_cache
@@ -48,8 +41,9 @@ import pyopencl as cl
 import pyopencl.array as cla
 from pyopencl.scan import ExclusiveScanKernel
 
-from .constants import MAX_CHANNELS, STREAM_MIN_BYTES
-from .device import Runtime
+from .constants import STREAM_MIN_BYTES
+from .context import Runtime
+from .host_memory import check_host_memory, host_empty
 
 
 class BufferLimitError(ValueError):
@@ -65,91 +59,10 @@ def check_buffer(rt: Runtime, nbytes: int, what: str) -> None:
                                "(CL_DEVICE_MAX_MEM_ALLOC_SIZE)")
 
 
-#: Host allocations from this many bytes on are checked against the memory the system has free.
-HOST_CHECK_BYTES = 256 << 20
-
-
-class HostMemoryError(MemoryError):
-    """A large host allocation refused before it is made because the system has not that much
-    memory available: the process gets a message naming the sizes instead of an OOM kill."""
-
-
-def available_host_bytes() -> int | None:
-    """The memory the system can give without swapping (Linux: MemAvailable of /proc/meminfo, in
-    bytes), or None where it does not say."""
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) << 10
-    except OSError:
-        return None
-    return None
-
-
-def check_host_memory(nbytes: int, what: str) -> None:
-    """HostMemoryError unless ``nbytes`` (at least HOST_CHECK_BYTES; smaller ones are not
-    checked) fit in the host memory available now; ``what`` names the allocation."""
-    if nbytes < HOST_CHECK_BYTES:
-        return
-    available = available_host_bytes()
-    if available is not None and nbytes > available:
-        raise HostMemoryError(f"{what} needs {nbytes / 1e9:.2f} GB of host memory; the system has "
-                              f"{available / 1e9:.2f} GB available (MemAvailable). Render fewer rays at a time "
-                              "(pixels=...), fewer channels, or a float16 table")
-
-
-def check_channels(channels: int) -> None:
-    """ValueError unless 1 <= channels <= MAX_CHANNELS."""
-    if not 1 <= channels <= MAX_CHANNELS:
-        raise ValueError(f"features have {channels} channels; 1..{MAX_CHANNELS} are supported")
-
-
-#: CPU shapes: the most vectors of a row one work-item blends (512 floats: a whole 512-D row;
-#: the kernels accumulate them RV vectors at a time in registers, kernels/common.h), so that each
-#: entry's id, weight and row address are read once per row instead of once per chunk.
-CPU_ROW_VECTORS = 32
-
-
-def channel_layout(channels: int, gpu_shaped: bool = False) -> tuple[int, int, int]:
-    """(VW, NV, cstride) for ``channels`` feature channels.
-
-    VW is the vector width of the kernels (16 from 16 channels up, else the next power of two),
-    NV the vectors of a row a work-item blends (CPU shapes: the largest divisor of
-    the vector count up to CPU_ROW_VECTORS, so one work-item takes up to 512 floats of a row; GPU
-    shapes: 1, so a work-item holds 16 accumulators and more work-items share a row), and cstride
-    the padded row length in floats (a multiple of VW * NV; the same for both shapes).
-    """
-    if channels < 1:
-        raise ValueError(f"features need at least one channel, got {channels}")
-    vw = 16 if channels >= 16 else 1 << (channels - 1).bit_length()
-    n_vec = -(-channels // vw)
-    nv = 1 if gpu_shaped else max(d for d in range(1, min(n_vec, CPU_ROW_VECTORS) + 1) if n_vec % d == 0)
-    return vw, nv, n_vec * vw
-
-
-def padded_rows(features: np.ndarray, cstride: int) -> np.ndarray:
-    """features [N,C] as a C-contiguous float32 [N,cstride] array (zero columns appended)."""
-    features = np.asarray(features, np.float32)
-    if features.shape[1] == cstride:
-        return np.ascontiguousarray(features)
-    out = np.zeros((features.shape[0], cstride), np.float32)
-    out[:, :features.shape[1]] = features
-    return out
-
-
 def streamed(nbytes: int) -> int:
     """The ``stream`` argument of the kernels that write an output of ``nbytes`` bytes: 1 (write it
     with non-temporal stores, VSTREAM in kernels/common.h) from STREAM_MIN_BYTES, else 0."""
     return int(nbytes >= STREAM_MIN_BYTES)
-
-
-def padded_vector(values, channels: int, cstride: int) -> np.ndarray:
-    """A float32 [cstride] row holding the first ``channels`` of ``values`` (zeros if None)."""
-    out = np.zeros(cstride, np.float32)
-    if values is not None:
-        out[:channels] = np.asarray(values, np.float32).reshape(-1)[:channels]
-    return out
 
 
 def _checked(rt: Runtime, shape, dtype) -> None:
@@ -292,133 +205,6 @@ def table_parts(rt: Runtime, table: np.ndarray, cstride: int) -> Iterator[tuple[
     for r0, r1 in row_parts(rt, len(table), cstride, table.itemsize):
         with device_rows(rt, table[r0:r1], cstride) as rows:
             yield r0, rows
-
-
-# ----------------------------------------------------------------------------------------------
-# the host pool of large outputs
-# ----------------------------------------------------------------------------------------------
-
-def _refs(slots: list, i: int) -> int:
-    return sys.getrefcount(slots[i])
-
-
-#: What :func:`_refs` counts for an array referenced by nothing but the pool's list.
-_UNUSED_REFS = _refs([np.empty(1)], 0)
-
-
-class HostPool:
-    """Page-aligned host arrays of at least ``min_bytes`` kept between calls (at most
-    ``max_bytes`` in all), so that large outputs of warm calls reuse memory that is already
-    mapped instead of page-faulting fresh memory in: glibc maps large allocations (always above
-    32 MB; smaller ones too, depending on its adaptive mmap threshold) freshly and returns them
-    to the system on free.
-
-    :meth:`empty` hands out a view of a pooled buffer and reuses a buffer only when nothing but
-    the pool references it: every numpy view of it references it (``.base``) and a torch tensor
-    made by ``torch.from_numpy`` holds its array, so a buffer is free exactly when no array,
-    view or tensor of an earlier output is alive (``sys.getrefcount``). Outputs therefore never
-    alias memory a caller still holds. Buffer sizes are rounded up to size classes of 1/8 of an
-    octave, so requests of slightly varying sizes (e.g. a view's tile keys) share buffers; free
-    ones are dropped least recently used first when a new one would exceed ``max_bytes``, and a
-    request that still does not fit gets a plain (unpooled) array.
-    """
-
-    ALIGN = 4096
-
-    def __init__(self, max_bytes: int, min_bytes: int = 1 << 16) -> None:
-        self.max_bytes, self.min_bytes = int(max_bytes), int(min_bytes)
-        self._slots: list[np.ndarray] = []       # uint8 owners, least recently used first
-        self._lock = threading.Lock()
-        self.hits = self.misses = 0
-
-    @property
-    def nbytes(self) -> int:
-        """Bytes of the buffers the pool owns (free or handed out)."""
-        return sum(raw.nbytes for raw in self._slots)
-
-    @property
-    def free_bytes(self) -> int:
-        """Bytes of the pooled buffers nothing else references (reusable now)."""
-        with self._lock:
-            return sum(self._slots[i].nbytes for i in range(len(self._slots)) if self._free(i))
-
-    def _free(self, i: int) -> bool:
-        return _refs(self._slots, i) <= _UNUSED_REFS
-
-    def clear(self) -> None:
-        """Drop the free buffers (those still referenced stay with their holders)."""
-        with self._lock:
-            self._slots = [self._slots[i] for i in range(len(self._slots)) if not self._free(i)]
-
-    def empty(self, shape, dtype=np.float32) -> np.ndarray:
-        """An uninitialised C-contiguous array (page-aligned when pooled); HostMemoryError when a
-        fresh one would exceed the memory available (:func:`check_host_memory`)."""
-        dtype = np.dtype(dtype)
-        shape = (int(shape),) if np.isscalar(shape) else tuple(int(s) for s in shape)
-        nbytes = math.prod(shape) * dtype.itemsize
-        if nbytes < self.min_bytes:
-            return np.empty(shape, dtype)
-        what = f"a host array of {shape} {dtype}"
-        with self._lock:
-            raw = self._take(self.size_class(nbytes + self.ALIGN), what)
-        if raw is None:
-            check_host_memory(nbytes, what)
-            return np.empty(shape, dtype)
-        start = -raw.__array_interface__["data"][0] % self.ALIGN
-        return raw[start:start + nbytes].view(dtype).reshape(shape)
-
-    def zeros(self, shape, dtype=np.float32) -> np.ndarray:
-        """As :meth:`empty`, zero-filled."""
-        out = self.empty(shape, dtype)
-        out.fill(0)
-        return out
-
-    @staticmethod
-    def size_class(nbytes: int) -> int:
-        """``nbytes`` rounded up to keep its 4 leading bits (at most 1/8 more)."""
-        shift = max(nbytes.bit_length() - 4, 0)
-        return -(-nbytes >> shift) << shift
-
-    def _take(self, size: int, what: str) -> np.ndarray | None:
-        slots = self._slots
-        for i in range(len(slots)):
-            if slots[i].nbytes == size and self._free(i):
-                slots.append(slots.pop(i))                 # most recently used last
-                self.hits += 1
-                return slots[-1]
-        self.misses += 1
-        if size > self.max_bytes:
-            return None
-        total = sum(raw.nbytes for raw in slots)
-        i = 0
-        while total + size > self.max_bytes and i < len(slots):
-            if self._free(i):
-                total -= slots.pop(i).nbytes
-            else:
-                i += 1
-        if total + size > self.max_bytes:
-            return None
-        check_host_memory(size, what)
-        slots.append(np.empty(size, np.uint8))
-        return slots[-1]
-
-
-_HOST_POOL: HostPool | None = None
-
-
-def host_pool() -> HostPool:
-    """The process-wide :class:`HostPool`, bounded by ``$QR_CL_HOST_POOL_MB`` MiB (default 2048:
-    two whole-image 512-D renders of 640x480, the previous one still held by the caller)."""
-    global _HOST_POOL
-    if _HOST_POOL is None:
-        _HOST_POOL = HostPool(int(os.environ.get("QR_CL_HOST_POOL_MB", 2048)) << 20)
-    return _HOST_POOL
-
-
-def host_empty(shape, dtype=np.float32) -> np.ndarray:
-    """An uninitialised host array for a large output, from :func:`host_pool` (memory of an
-    earlier output nobody references any more; small arrays are plain ``np.empty``)."""
-    return host_pool().empty(shape, dtype)
 
 
 @lru_cache(maxsize=None)

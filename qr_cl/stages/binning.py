@@ -18,8 +18,9 @@ import pyopencl.array as cla
 import torch
 from pyopencl.algorithm import RadixSort
 
-from ..runtime import Runtime, check_buffer, device_empty, device_zeros, exclusive_scan, host_empty, last_value, to_device
-from .project import FOOTPRINT_INTS, Projection, tile_grid
+from ..runtime import (FOOTPRINT_INTS, SPLAT, SPLAT_FLOATS, Runtime, check_buffer, device_empty, device_zeros, exclusive_scan,
+                       host_empty, last_value, to_device)
+from .project import Projection, tile_grid
 
 BIN_CHUNKS_PER_CORE = 4   # the CPU binning's work-items per compute unit
 PLAN_META_KEYS = ("means2d", "conics", "opacities", "depths", "radii", "tile_ranges", "flatten_ids",
@@ -30,8 +31,9 @@ PLAN_META_KEYS = ("means2d", "conics", "opacities", "depths", "radii", "tile_ran
 class RasterPlan:
     """Everything the per-pixel kernels need, on the device.
 
-    splats [N,8] float32 (mean2d x, y in px; conic a, b, c; opacity; depth; sigma_max =
-    ln(opacity / ALPHA_MIN), the exponent beyond which its alpha is skipped), radii [N,2] int32
+    splats [N,8] float32 (mean2d in px, conic, opacity, depth and sigma_max = ln(opacity /
+    ALPHA_MIN), the exponent beyond which its alpha is skipped, in the slots of
+    :data:`~qr_cl.runtime.SPLAT`), radii [N,2] int32
     (x, y half-sides in px of the box it is binned within; 0 = culled), ranges [tiles, 2] int32 [start, end) into ids, ids [max(M,1)] int32 depth-sorted
     Gaussian ids per tile (M = n_keys; one unused entry when M = 0), width/height in px.
     Needs N >= 1 (callers handle empty scenes).
@@ -78,14 +80,14 @@ class RasterPlan:
         """Host copies: means2d [N,2] px, conics [N,3], depths [N], radii [N,2] int32 (x, y px; 0 =
         culled), opacities [N], tile_ranges [tiles,2] [start, end) into flatten_ids [M]
         (depth-sorted Gaussian ids per tile), n_keys = M. Large arrays come from the host pool."""
-        s = _get(self.splats).reshape(-1, 8)
+        s = _get(self.splats).reshape(-1, SPLAT_FLOATS)
 
         def column(cols):
             out = host_empty((len(s), cols.stop - cols.start) if isinstance(cols, slice) else len(s))
             out[...] = s[:, cols]
             return out
-        return {"means2d": column(slice(0, 2)), "conics": column(slice(2, 5)), "opacities": column(5),
-                "depths": column(6), "radii": _get(self.radii),
+        return {"means2d": column(SPLAT.mean), "conics": column(SPLAT.conic), "opacities": column(SPLAT.opacity),
+                "depths": column(SPLAT.depth), "radii": _get(self.radii),
                 "tile_ranges": _get(self.ranges).reshape(-1, 2),
                 "flatten_ids": _get(self.ids)[:self.n_keys], "n_keys": self.n_keys}
 

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pyopencl.array as cla
 
-from ..runtime import (TILE, Runtime, channel_layout, check_buffer, device_empty, device_zeros,
+from ..runtime import (SPLAT_FLOATS, TILE, Runtime, channel_layout, check_buffer, device_empty, device_zeros,
                        padded_vector, streamed, to_device, walk_windows)
 from .select import Selection, SelectionKernel
 from .transpose import Transpose, backward_order, longest_segment, transpose
@@ -332,13 +332,15 @@ def blend_backward_alpha(sel: Selection, d_w: cla.Array, d_trem: np.ndarray | No
 
 
 def splat_backward(sel: Selection, d_alpha: cla.Array, views: BackwardViews | None = None) -> cla.Array:
-    """dL/dsplat [N, 8] float32 (d mean2d x, y in px; d conic A, B, C; d opacity; 0; 0) from
+    """dL/dsplat [N, 8] float32 (d mean2d in px, d conic and d opacity in their slots of
+    :data:`~qr_cl.runtime.SPLAT`, and in its ``absgrad`` slots the sums over the entries of
+    |d mean2d x| and |d mean2d y|, gsplat's absgrad) from
     dL/dalpha per selection entry (:func:`blend_backward_alpha`), summed per Gaussian over the
     selection's transpose in a fixed order (bitwise reproducible). Entries whose alpha was
     clamped to ALPHA_MAX contribute nothing. ``views``: as :func:`blend_backward`'s."""
     rt = sel.plan.runtime
     t = (BackwardViews() if views is None else views).transpose(sel)
-    d_splats = device_empty(rt, (sel.n_gaussians, 8), np.float32)
+    d_splats = device_empty(rt, (sel.n_gaussians, SPLAT_FLOATS), np.float32)
     # splat_backward reads no feature rows; blend.cl is built with some row vector width all the same
     for walk_from, walk_to in walk_windows(rt.loop_limit, longest_segment(t) if rt.loop_limit else 0, SPLAT_LOOPS):
         rt.launch("splat_backward", sel.n_gaussians, defines={"VW": 1, "NV": 1}, n=sel.n_gaussians,

@@ -7,11 +7,7 @@ from typing import NamedTuple
 import numpy as np
 import pyopencl.array as cla
 
-from ..runtime import BLOCK_GROUP, TILE, Runtime, device_empty, to_device
-
-
-#: int32 entries of a footprint (int16 in kernels/common.h: tile rectangle + stored row spans).
-FOOTPRINT_INTS = 16
+from ..runtime import BLOCK_GROUP, FOOTPRINT_INTS, SPLAT_FLOATS, TILE, Runtime, device_empty, to_device
 
 
 def tile_grid(width: int, height: int) -> tuple[int, int]:
@@ -27,11 +23,12 @@ def lane_items(n: int) -> int:
 
 class Projection(NamedTuple):
     """The outputs of :func:`project`, device arrays over the N Gaussians: splats [N,8] float32
-    (mean2d x, y px; conic a, b, c; opacity; depth; sigma_max), radii [N,2] int32 (x, y: the
+    (mean2d px, conic, opacity, depth and sigma_max, in the slots of
+    :data:`~qr_cl.runtime.SPLAT`), radii [N,2] int32 (x, y: the
     half-sides in px of the opacity-aware box the Gaussian is binned within, at most its 3-sigma
-    radius; 0 = culled), footprints [N, FOOTPRINT_INTS] int32 (the tile rectangle [x0, y0, x1, y1),
-    then the tiles of its rows that the blend ellipse reaches, packed: see spans_stored in
-    kernels/common.h), tiles_touched [N] int32 (the tiles of those rows) and depth_keys [N] int32
+    radius; 0 = culled), footprints [N, FOOTPRINT_INTS] int32 (the tile rectangle [x0, y0, x1, y1)
+    in FOOTPRINT_RECT, the tiles of its rows that the blend ellipse reaches packed in
+    FOOTPRINT_SPANS: see :mod:`qr_cl.runtime.constants`), tiles_touched [N] int32 (the tiles of those rows) and depth_keys [N] int32
     (the bits of the positive float32 depth, ordered as the depths; INT32_MAX for culled
     Gaussians)."""
 
@@ -49,7 +46,7 @@ def project(rt: Runtime, means: cla.Array, quats: cla.Array, scales: cla.Array, 
     (camera z, world units)."""
     n = means.shape[0]
     tiles_x, tiles_y = tile_grid(width, height)
-    splats = device_empty(rt, (n, 8), np.float32)
+    splats = device_empty(rt, (n, SPLAT_FLOATS), np.float32)
     radii = device_empty(rt, (n, 2), np.int32)
     footprints = device_empty(rt, (n, FOOTPRINT_INTS), np.int32)
     touched, depth_keys = device_empty(rt, n, np.int32), device_empty(rt, n, np.int32)

@@ -28,10 +28,10 @@ def test_render_bad_file_is_a_one_line_error(tmp_path, capsys):
 
 
 def test_a_render_the_memory_cannot_hold_is_a_one_line_error(tmp_path, capsys, monkeypatch):
-    from qr_cl.runtime import host_pool, memory
+    from qr_cl.runtime import host_memory, host_pool
     save_ply(tmp_path / "scene.ply", procedural_scene(1000))
-    monkeypatch.setattr(memory, "HOST_CHECK_BYTES", 1 << 10)
-    monkeypatch.setattr(memory, "available_host_bytes", lambda: 2048)
+    monkeypatch.setattr(host_memory, "HOST_CHECK_BYTES", 1 << 10)
+    monkeypatch.setattr(host_memory, "available_host_bytes", lambda: 2048)
     host_pool().clear()
     assert main(["render", str(tmp_path / "scene.ply"), "--orbit", "1", "--width", "64", "--height", "48",
                  "--out", str(tmp_path / "r")]) == 2

@@ -89,7 +89,7 @@ def test_the_training_thread_runs_no_kernel_while_the_next_rays_are_made(scene, 
     import time
 
     from qr_cl.app.training import trainer as trainer_module
-    from qr_cl.runtime.device import Runtime
+    from qr_cl.runtime import Runtime
 
     launches, making = [], []
     launch, make_rays = Runtime.launch, trainer_module.Trainer.make_rays

@@ -113,9 +113,9 @@ def test_both_public_calls_split_the_same_way(random_scene, monkeypatch, shape):
 def test_a_render_beyond_the_available_host_memory_is_refused_by_name(random_scene, monkeypatch):
     """Large host allocations are checked against MemAvailable before they are made: a render
     whose image cannot be held gets a HostMemoryError naming the sizes, not an OOM kill."""
-    from qr_cl.runtime import HostMemoryError, host_pool, memory
-    monkeypatch.setattr(memory, "HOST_CHECK_BYTES", 1 << 16)        # the test's image is small
-    monkeypatch.setattr(memory, "available_host_bytes", lambda: 100_000)
+    from qr_cl.runtime import HostMemoryError, host_memory, host_pool
+    monkeypatch.setattr(host_memory, "HOST_CHECK_BYTES", 1 << 16)   # the test's image is small
+    monkeypatch.setattr(host_memory, "available_host_bytes", lambda: 100_000)
     host_pool().clear()
     m, q, s, o, v, K, w, h = random_scene
     feats = np.random.default_rng(0).normal(size=(len(m), 64)).astype(np.float32)
@@ -123,13 +123,13 @@ def test_a_render_beyond_the_available_host_memory_is_refused_by_name(random_sce
         qr_cl.rasterize(m, q, s, o, feats, v, K, w, h, sampler="quantile", k=6)
     message = str(err.value)
     assert f"({w * h}, 64) float32" in message and "GB of host memory" in message and "0.00 GB available" in message
-    monkeypatch.setattr(memory, "available_host_bytes", lambda: None)   # a system that does not say
+    monkeypatch.setattr(host_memory, "available_host_bytes", lambda: None)   # a system that does not say
     qr_cl.rasterize(m, q, s, o, feats, v, K, w, h, sampler="quantile", k=6)
 
 
 def test_available_host_memory_is_read_from_the_system():
-    from qr_cl.runtime import memory
-    available = memory.available_host_bytes()
+    from qr_cl.runtime import host_memory
+    available = host_memory.available_host_bytes()
     assert available is None or 0 < available < 1 << 50
 
 

@@ -4,7 +4,7 @@ from types import SimpleNamespace
 import pyopencl as cl
 import pytest
 
-from qr_cl.runtime import device
+from qr_cl.runtime import context, device
 
 
 def test_cpu_spec_selects_a_cpu_device(monkeypatch):
@@ -57,15 +57,15 @@ def test_two_threads_asking_for_one_program_get_it_built_once(monkeypatch):
     import numpy as np
     import pyopencl.array as cla
 
-    rt = device.Runtime(device.choose_device())
-    builds, signatures = [], device.kernel_signatures
+    rt = context.Runtime(device.choose_device())
+    builds, signatures = [], context.kernel_signatures
 
     def slow_build(source, constants):          # read once per program build
         builds.append(threading.current_thread().name)
         time.sleep(0.2)                         # the other thread arrives while this one builds
         return signatures(source, constants)
 
-    monkeypatch.setattr(device, "kernel_signatures", slow_build)
+    monkeypatch.setattr(context, "kernel_signatures", slow_build)
     start, errors, results = threading.Barrier(2), [], {}
 
     def spans(length: int) -> None:

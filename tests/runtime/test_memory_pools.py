@@ -117,9 +117,9 @@ def test_copying_path_when_the_device_does_not_share_host_memory(random_scene, m
 @pytest.fixture
 def fresh_host_pool(monkeypatch):
     """A private host pool for the test (so earlier tests' free buffers do not interfere)."""
-    from qr_cl.runtime import memory
+    from qr_cl.runtime import host_memory
     pool = HostPool(max_bytes=1 << 28)
-    monkeypatch.setattr(memory, "_HOST_POOL", pool)
+    monkeypatch.setattr(host_memory, "_HOST_POOL", pool)
     return pool
 
 

@@ -6,7 +6,7 @@ import pyopencl.array as cla
 import pytest
 
 from qr_cl.runtime import runtime
-from qr_cl.runtime.device import kernel_files, kernel_source
+from qr_cl.runtime.sources import kernel_files, kernel_source
 from qr_cl.runtime.signatures import SignatureError, kernel_signatures, preprocess
 
 ROWS = [{"VW": 16, "NV": 4}, {"VW": 1, "NV": 1}, {"VW": 4, "NV": 2}, {"VW": 16, "NV": 4, "HALF_ROWS": 1},

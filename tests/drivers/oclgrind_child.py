@@ -1,36 +1,29 @@
-"""Every public kernel path under oclgrind, the OpenCL device simulator (issue 12: "Prove any
-OpenCL driver"). A report of oclgrind about one of qr-cl's own kernels fails the test.
+"""The child process of the oclgrind tests (test_oclgrind_reports.py, test_oclgrind_values.py),
+and how they start it: under oclgrind, the OpenCL device simulator (issue 12: "Prove any OpenCL
+driver").
 
-A child process sees only oclgrind (a private ``OCL_ICD_VENDORS`` folder, never registered
-system-wide), picks it with ``QR_CL_DEVICE`` (oclgrind is not a CPU device, so qr-cl launches
-its GPU shapes: padded work-groups, device sorts) and renders tiny scenes through every kernel.
-Two runs, started at once (oclgrind simulates on one core), because the checks of Debian's
-oclgrind 21.10 (built on LLVM 14) do not all work together:
+A child sees only oclgrind (a private ``OCL_ICD_VENDORS`` folder, never registered system-wide),
+picks it with ``QR_CL_DEVICE`` (oclgrind is not a CPU device, so qr-cl launches its GPU shapes:
+padded work-groups, device sorts) and renders tiny scenes through every kernel. The checks of
+Debian's oclgrind 21.10 (built on LLVM 14) do not all work together, hence two checking modes:
 
 * ``races``: out-of-bounds accesses (always checked), data races (``OCLGRIND_DATA_RACES``) and
   API misuse (``OCLGRIND_CHECK_API``) on the usual optimized builds.
 * ``uninitialized``: uses of uninitialized values (``OCLGRIND_UNINITIALIZED``) and API misuse,
   on unoptimized builds (``-cl-opt-disable``): on optimized code this checker stops with a fatal
   "Unsupported instruction: freeze" (in pyopencl's scan) and flags the poison lanes of vector
-  stores that LLVM splits into scalar stores (project.cl's ``splats[i] = (float8)(...)``). It
-  ignores clEnqueueFillBuffer (pyopencl's ``zeros``), so the child fills buffers by host writes,
-  and it misreads buffers whose memory was freed and handed out again, so the child keeps every
-  device array alive.
+  stores that LLVM splits into scalar stores (project.cl's ``splats[i] = splat``). It ignores
+  clEnqueueFillBuffer (pyopencl's ``zeros``), so the child fills buffers by host writes, and it
+  misreads buffers whose memory was freed and handed out again, so the child keeps every device
+  array alive.
 
 pyopencl's scans and radix sort are interpreted slowly (thousands of work-items per call, minutes
 under the race checker) and are not qr-cl's: the ``races`` run checks them once each on the
 device (:func:`exercise_pyopencl`), then both runs do them on the host; every qr-cl kernel runs on
-oclgrind. Reports about pyopencl's kernels (scan_lev1, scan_lev2, scan_final_update, the radix
-sort's) and about pyopencl's probing of vendor-specific device queries (clGetDeviceInfo ->
-CL_INVALID_VALUE) are printed, not failed on. Skipped when oclgrind's ICD library is not installed
-(Debian/Ubuntu: ``apt-get install oclgrind``).
+oclgrind. A third mode, ``project``, runs project.cl without checks (:func:`project_runs`).
 
-A third test checks values rather than reports: project.cl run three times under oclgrind (no
-checks, seconds) must give the float64 twin's projection each time
-(:func:`test_projection_under_oclgrind_is_the_twins`).
-
-Run as a script (``python tests/drivers/test_oclgrind.py races|uninitialized``, or ``project
-OUT.npz``) this file is the child.
+Run as a script: ``python tests/drivers/oclgrind_child.py races|uninitialized``, or ``project
+OUT.npz``.
 """
 from __future__ import annotations
 
@@ -39,11 +32,8 @@ import re
 import subprocess
 import sys
 import time
-from collections import Counter
 from pathlib import Path
-from typing import Iterator, NamedTuple
-
-import pytest
+from typing import NamedTuple
 
 ICD_LIBRARIES = ("/usr/lib/oclgrind/liboclgrind-rt-icd.so",                 # Debian, Ubuntu
                  "/usr/lib/x86_64-linux-gnu/liboclgrind-rt-icd.so",
@@ -390,75 +380,7 @@ def use_host_scan_sort(uninitialized: bool) -> None:
         cla.Array.__init__ = keep_array
 
 
-# ------------------------------------------------------------------------ oclgrind's reports
-
-def qr_cl_kernel_names() -> set[str]:
-    names = set()
-    for path in (REPO / "kernels").glob("*.cl"):
-        names.update(re.findall(r"__kernel\s+void\s+(\w+)\s*\(", path.read_text()))
-    return names
-
-
-#: First lines of oclgrind's messages ("Invalid read of size 4 at global memory address ...",
-#: "Read-write data race at ...", "Uninitialized value written to ...", "Controlflow depends on
-#: uninitialized value", "OCLGRIND FATAL ERROR (...)", "Oclgrind - OpenCL runtime error detected").
-OCLGRIND_HEADER = re.compile(r"(Invalid |Uninitiali[sz]ed |Controlflow depends|\S+(-\S+)? data race|"
-                             r"OCLGRIND|Oclgrind|Unsupported |Undefined external|Work-group divergence)")
-
-
-def reports(stderr: str) -> list[str]:
-    """oclgrind's messages on ``stderr`` (where it prints them, between the child's own output):
-    a first line at column 0 matching :data:`OCLGRIND_HEADER`, then tab-indented lines ("Kernel:
-    name", "Entity: ...", "First entity: ...", "Function: clXxx", "Error: CL_...", instructions,
-    source lines; blank lines inside a message hold a tab). A lone "OCLGRIND FATAL ERROR" line
-    heads the message after it; "Oclgrind: N errors generated" notes are left out."""
-    out, cur = [], None
-    for line in stderr.splitlines():
-        if line.startswith(("\t", " ")):
-            if cur is not None:
-                cur.append(line.rstrip())
-            continue
-        if cur is not None:
-            out.append(cur)
-        cur = [line.rstrip()] if OCLGRIND_HEADER.match(line) else None
-    if cur is not None:
-        out.append(cur)
-    merged = []
-    for lines in out:
-        if merged and len(merged[-1]) == 1 and merged[-1][0].startswith("OCLGRIND FATAL ERROR"):
-            merged[-1] += lines
-        else:
-            merged.append(lines)
-    return ["\n".join(lines) for lines in merged
-            if not (lines[0].startswith("Oclgrind: ") and "errors generated" in lines[0])]
-
-
-def is_api_report(report: str) -> bool:
-    return report.startswith("Oclgrind - OpenCL runtime error detected")
-
-
-def kernel_of(report: str) -> str | None:
-    m = re.search(r"^\s*Kernel:\s*(\w+)", report, re.M)
-    return m.group(1) if m else None
-
-
-def is_pyopencl_probe(report: str) -> bool:
-    """pyopencl's probing of vendor-specific device queries (e.g. the NVIDIA compute capability
-    when it checks for a build cache), answered CL_INVALID_VALUE and caught by pyopencl."""
-    return ("Function: clGetDeviceInfo" in report and "CL_INVALID_VALUE" in report
-            and "'param_name'" in report)
-
-
-def summary(reports: list[str]) -> str:
-    """One line per kind of report (address and entity left out) with its count."""
-    def kind(r):
-        lines = r.splitlines()
-        head = re.sub(r"0x[0-9a-f]+", "ADDR", lines[0])
-        where = " | ".join(line.strip() for line in lines[1:] if re.match(
-            r"\s*(Kernel:|Function:|Error:|At line|store|load|tail call|call|%)", line))
-        return f"{head} | {where}"
-    return "\n".join(f"{n:5d} x {k}" for k, n in Counter(map(kind, reports)).most_common())
-
+# ------------------------------------------------------------------- starting a child
 
 class Child(NamedTuple):
     """A child started by :func:`start_child`: its process, start time and folder (output files there)."""
@@ -499,90 +421,6 @@ def finish_child(child: Child, timeout: float = 600) -> tuple[subprocess.Complet
     return (subprocess.CompletedProcess(child.proc.args, child.proc.returncode, out, err),
             time.perf_counter() - child.start)
 
-
-@pytest.fixture(scope="module")
-def clean_runs(tmp_path_factory) -> Iterator[dict[str, Child]]:
-    """Both checking runs (:data:`MODES`), started at once on first use: oclgrind simulates on one
-    core, so on two cores the second run costs little wall time."""
-    if oclgrind_icd() is None:
-        pytest.skip("oclgrind is not installed (apt-get install oclgrind)")
-    runs = {mode: start_child(mode, tmp_path_factory.mktemp(f"oclgrind-{mode}")) for mode in MODES}
-    yield runs
-    for child in runs.values():
-        if child.proc.poll() is None:
-            child.proc.kill()
-            child.proc.wait()
-
-
-# ---------------------------------------------------------------------------------------- the test
-
-@pytest.mark.parametrize("mode", list(MODES))
-def test_qr_cl_kernels_are_clean_under_oclgrind(mode, clean_runs):
-    proc, seconds = finish_child(clean_runs[mode])
-    print(f"[{mode}] child ran {seconds:.0f} s:\n{proc.stdout}")
-    assert proc.returncode == 0, f"child failed (rc {proc.returncode}):\n{proc.stdout}\n{proc.stderr[-8000:]}"
-    assert "device: Oclgrind" in proc.stdout, proc.stdout
-    ours = qr_cl_kernel_names()
-    mine, theirs = [], []
-    for r in reports(proc.stderr):
-        if is_api_report(r):
-            (theirs if is_pyopencl_probe(r) else mine).append(r)
-        else:
-            (mine if kernel_of(r) is None or kernel_of(r) in ours else theirs).append(r)
-    if theirs:
-        print(f"[{mode}] oclgrind's reports about pyopencl's own kernels and queries "
-              f"({len(theirs)}, not failed on):\n{summary(theirs)}")
-        examples = {}
-        for r in theirs:
-            examples.setdefault((kernel_of(r), r.splitlines()[0][:30]), r)
-        print("\n\n".join(examples.values()))
-    assert not mine, (f"oclgrind reports about qr-cl's kernels ({len(mine)}):\n{summary(mine)}\n\n"
-                      + "\n\n".join(mine[:5]))
-
-
-def test_projection_under_oclgrind_is_the_twins(tmp_path):
-    """The values of project.cl under oclgrind (the test above reads only its reports): every run
-    of :func:`project_runs` equal to the first, and the tile rectangles, radii, tiles touched and
-    stored row spans equal to the float64 twin's, splats close to it. Caught integer max/min with
-    a scalar bound on a lanei in tile_spans (common.h): oclgrind reads that bound's lanes 1.. out
-    of its own memory, so the tiles touched changed from run to run and some Gaussians were culled."""
-    import numpy as np
-
-    from qr_cl.render import selfcheck
-    from qr_cl.stages import project_ref
-    from qr_cl.stages.project import tile_grid
-
-    if oclgrind_icd() is None:
-        pytest.skip("oclgrind is not installed (apt-get install oclgrind)")
-    out = tmp_path / "project.npz"
-    proc, seconds = finish_child(start_child("project", tmp_path, args=(str(out),)), timeout=300)
-    assert proc.returncode == 0, f"child failed (rc {proc.returncode}):\n{proc.stdout}\n{proc.stderr[-8000:]}"
-    assert "device: Oclgrind" in proc.stdout, proc.stdout
-    got = np.load(out)
-    for run in range(1, PROJECT_RUNS):
-        for name in ("splats", "radii", "footprints", "tiles_touched", "depth_keys"):
-            assert np.array_equal(got[f"{name}{run}"], got[f"{name}0"]), f"run {run}: {name} differ from run 0"
-
-    geometry, _, _, cam = selfcheck._scene()
-    w, h = selfcheck.WIDTH, selfcheck.HEIGHT
-    twin = project_ref.project(*geometry, cam.viewmat, cam.K, w, h)
-    splats, footprints = got["splats0"], got["footprints0"]
-    np.testing.assert_array_equal(got["radii0"], twin["radii"])
-    np.testing.assert_array_equal(footprints[:, :4], twin["rects"])
-    np.testing.assert_array_equal(got["tiles_touched0"], twin["tiles_touched"])
-    vis = twin["radii"][:, 0] > 0
-    assert vis.sum() > 100, "the scene should keep most Gaussians"
-    np.testing.assert_allclose(splats[vis, :2], twin["means2d"][vis], rtol=1e-4, atol=1e-3)
-    np.testing.assert_allclose(splats[vis, 2:5], twin["conics"][vis], rtol=1e-4, atol=1e-4)
-    spans = footprints[:, 4:].copy().view(np.uint16).astype(np.int64)   # (x0 - rect x0) | (x1 - rect x0) << 8
-    tiles_x, _ = tile_grid(w, h)
-    for i in np.flatnonzero(vis):
-        rect = twin["rects"][i]
-        want = project_ref.tile_spans(twin["means2d"][i], twin["conics"][i], twin["opacities"][i], rect, tiles_x)
-        rows = spans[i, :rect[3] - rect[1]]
-        n_got = (rows >> 8) - (rows & 0xff)
-        assert np.array_equal(n_got, np.maximum(want[:, 2] - want[:, 1], 0)), f"Gaussian {i}: row spans"
-    print(f"child ran {seconds:.1f} s; {int(vis.sum())} Gaussians, {int(twin['tiles_touched'].sum())} tiles")
 
 
 if __name__ == "__main__":
