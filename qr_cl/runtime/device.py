@@ -154,15 +154,19 @@ def trial_run(device: cl.Device) -> str | None:
     return None
 
 
-def forced_loop_limit() -> int | None:
-    """``QR_CL_LOOP_LIMIT`` as an int (walks in windows as on a device that ends loops after that
+def forced_loop_limit() -> int | str | None:
+    """``QR_CL_LOOP_LIMIT``: an int (walks in windows as on a device that ends loops after that
     many iterations: how the windows run on any device, and a bound for a GPU driver's watchdog),
-    or None when unset; ValueError for a value that is not an integer >= 1024."""
-    value = os.environ.get("QR_CL_LOOP_LIMIT", "").strip()
+    ``"none"`` (no limit and no loop probe: for a driver known to run loops whole, such as a
+    simulator on which the probe takes a minute), or None when unset; ValueError for another value."""
+    value = os.environ.get("QR_CL_LOOP_LIMIT", "").strip().lower()
     if not value:
         return None
+    if value == "none":
+        return value
     if not value.isdigit() or int(value) < 1024:
-        raise ValueError(f"QR_CL_LOOP_LIMIT={value!r}: use an integer >= 1024 (loop iterations per work-item)")
+        raise ValueError(f"QR_CL_LOOP_LIMIT={value!r}: use an integer >= 1024 (loop iterations per work-item) "
+                         "or none")
     return int(value)
 
 
@@ -188,7 +192,9 @@ def loop_limit(device: cl.Device) -> int | None:
     :func:`forced_loop_limit` first. A device with a limit walks its lists in windows
     (:func:`walk_windows`)."""
     forced = forced_loop_limit()
-    return forced if forced is not None else _probed_loop_limit(device)
+    if forced is None:
+        return _probed_loop_limit(device)
+    return None if forced == "none" else forced
 
 
 def walk_windows(limit: int | None, length: int, step_loops: int) -> list[tuple[int, int]]:

@@ -22,8 +22,9 @@ under the race checker) and are not qr-cl's: the ``races`` run checks them once 
 device (:func:`exercise_pyopencl`), then both runs do them on the host; every qr-cl kernel runs on
 oclgrind. A third mode, ``project``, runs project.cl without checks (:func:`project_runs`).
 
-Run as a script: ``python tests/drivers/oclgrind_child.py races|uninitialized``, or ``project
-OUT.npz``.
+Run as a script: ``python tests/drivers/oclgrind_child.py races|uninitialized [quick|full]``
+(``quick``: :func:`quick_exercise`, the default suite's; ``full``, the default: :func:`exercise`
+and, in the ``races`` run, pyopencl's kernels), or ``project OUT.npz``.
 """
 from __future__ import annotations
 
@@ -173,6 +174,54 @@ def exercise() -> None:
     roofline.fma_rate(rt, work_items=16, rounds=1)
     roofline.stream_bandwidth(rt, mib=1, rounds=1)
     print("roofline fma_peak, triad: ok", flush=True)
+    rt.queue.finish()
+
+
+def quick_exercise() -> None:
+    """The default suite's share of :func:`exercise`: every kernel file on one path each, both walks
+    (the tile walk in windows), forward and backward; the slow suite runs the whole exercise."""
+    import numpy as np
+    import torch
+
+    import qr_cl
+    from qr_cl.runtime import runtime
+
+    torch.set_num_threads(1)
+    rt = runtime()
+    print("device:", rt.device.name.strip(), "/", rt.device.platform.name.strip(), flush=True)
+    means, quats, scales, opac, sh = tiny_scene()
+    cam = qr_cl.look_at([0, 0, 0], [0, 0, 1], [0, -1, 0], 20.0, 20.0, W, H)
+    geo = (means, quats, scales, opac)
+    feats = np.random.default_rng(1).normal(size=(len(means), 5)).astype(np.float32)
+    bg = np.array([0.1, -0.2, 0.3, 0.4, 0.5], np.float32)
+    pixels = np.array([[0, 0], [5, 5], [23, 15], [12, 8], [5, 5], [17, 3]], np.int32)
+    for sampler in ("volume", "quantile", "topk", "stratified"):       # GPU shapes: tile walks, select -> blend
+        f = torch.from_numpy(feats).requires_grad_(True)
+        img, _, _ = qr_cl.rasterize(*geo, f, cam.viewmat, cam.K, W, H, sampler=sampler, k=4, background=bg,
+                                    pixels=pixels if sampler in ("topk", "stratified") else None)
+        img.sum().backward()
+        assert bool(torch.isfinite(f.grad).all())
+        print(f"rasterize {sampler} forward+backward: ok", flush=True)
+    inputs = [torch.from_numpy(a).requires_grad_(True) for a in (*geo, feats)]
+    img, alpha, meta = qr_cl.rasterization(*inputs, torch.from_numpy(cam.viewmat)[None], torch.from_numpy(cam.K)[None],
+                                           W, H, packed=False, absgrad=True)
+    (img.sum() + alpha.sum()).backward()
+    assert all(bool(torch.isfinite(t.grad).all()) for t in inputs)
+    qr_cl.render_volume_fused(*geo, feats, cam.viewmat, cam.K, W, H, background=bg)
+    coeffs = torch.from_numpy(sh).requires_grad_(True)
+    qr_cl.rasterize(*geo, coeffs, cam.viewmat, cam.K, W, H, sh_degree=3)[0].sum().backward()
+    print("rasterization backward w.r.t. the Gaussians (absgrad), render_volume_fused, SH degree 3: ok", flush=True)
+    gpu_shaped = rt.gpu_shaped
+    rt.gpu_shaped, rt.loop_limit = True, WINDOWS_LIMITS[True]             # the tile walk in windows
+    f = torch.from_numpy(feats).requires_grad_(True)
+    qr_cl.rasterize(*geo, f, cam.viewmat, cam.K, W, H, sampler="quantile", k=4)[0].sum().backward()
+    qr_cl.render_volume_fused(*geo, feats, cam.viewmat, cam.K, W, H)
+    rt.gpu_shaped, rt.loop_limit = False, None                           # the block walk, blend fused in
+    f = torch.from_numpy(feats).requires_grad_(True)
+    qr_cl.rasterize(*geo, f, cam.viewmat, cam.K, W, H, sampler="quantile", k=4, background=bg)[0].sum().backward()
+    qr_cl.render_volume_fused(*geo, feats, cam.viewmat, cam.K, W, H)
+    rt.gpu_shaped = gpu_shaped
+    print("tile walk in windows, block walk with the blend fused in, forward+backward: ok", flush=True)
     rt.queue.finish()
 
 
@@ -403,6 +452,7 @@ def start_child(mode: str, folder: Path, args: tuple[str, ...] = ()) -> Child:
                # no self-check: its loop probe (64 x 2^20 iterations) took two of the child's three
                # minutes simulated, and its render check runs kernels that exercise() runs anyway
                QR_CL_SELF_CHECK="off",
+               QR_CL_LOOP_LIMIT="none",  # oclgrind runs loops whole; its loop probe takes a minute there
                PYTHONPATH=os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")])))
     with open(folder / "stdout.txt", "w") as out, open(folder / "stderr.txt", "w") as err:
         proc = subprocess.Popen([sys.executable, str(Path(__file__).resolve()), mode, *args], cwd=folder, env=env,
@@ -427,8 +477,9 @@ if __name__ == "__main__":
     if sys.argv[1] == "project":
         project_runs(sys.argv[2])
         sys.exit()
+    mode, scope = sys.argv[1], sys.argv[2] if len(sys.argv) > 2 else "full"
     record_scan_and_sort_specs()
-    if sys.argv[1:] == ["races"]:
+    if mode == "races" and scope == "full":
         exercise_pyopencl()
-    use_host_scan_sort(uninitialized=sys.argv[1:] == ["uninitialized"])
-    exercise()
+    use_host_scan_sort(uninitialized=mode == "uninitialized")
+    quick_exercise() if scope == "quick" else exercise()

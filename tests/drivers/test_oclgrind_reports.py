@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import re
 from collections import Counter
-from typing import Iterator
+from typing import Callable, Iterator
 
 import pytest
 
@@ -90,13 +90,19 @@ def summary(reports: list[str]) -> str:
 
 
 @pytest.fixture(scope="module")
-def clean_runs(tmp_path_factory) -> Iterator[dict[str, Child]]:
-    """Both checking runs (:data:`MODES`), started at once on first use: oclgrind simulates on one
-    core, so on two cores the second run costs little wall time."""
+def clean_runs(tmp_path_factory) -> Iterator[Callable[[str, str], Child]]:
+    """The checking run of (mode, scope): both modes' runs of a scope (:data:`MODES`) start at once
+    on first use: oclgrind simulates on one core, so on two cores the second costs little wall time."""
     if oclgrind_icd() is None:
         pytest.skip("oclgrind is not installed (apt-get install oclgrind)")
-    runs = {mode: start_child(mode, tmp_path_factory.mktemp(f"oclgrind-{mode}")) for mode in MODES}
-    yield runs
+    runs: dict[tuple[str, str], Child] = {}
+
+    def run(mode: str, scope: str) -> Child:
+        if (mode, scope) not in runs:
+            runs.update({(m, scope): start_child(m, tmp_path_factory.mktemp(f"oclgrind-{m}-{scope}"), args=(scope,))
+                         for m in MODES})
+        return runs[mode, scope]
+    yield run
     for child in runs.values():
         if child.proc.poll() is None:
             child.proc.kill()
@@ -105,9 +111,12 @@ def clean_runs(tmp_path_factory) -> Iterator[dict[str, Child]]:
 
 # ---------------------------------------------------------------------------------------- the test
 
+@pytest.mark.parametrize("scope", ["quick", pytest.param("full", marks=pytest.mark.slow)])
 @pytest.mark.parametrize("mode", list(MODES))
-def test_qr_cl_kernels_are_clean_under_oclgrind(mode, clean_runs):
-    proc, seconds = finish_child(clean_runs[mode])
+def test_qr_cl_kernels_are_clean_under_oclgrind(mode, scope, clean_runs):
+    """``quick`` (the default suite): every kernel file on one path each; ``full`` (slow): every
+    public path, both walks in one launch and in windows, and pyopencl's kernels once."""
+    proc, seconds = finish_child(clean_runs(mode, scope))
     print(f"[{mode}] child ran {seconds:.0f} s:\n{proc.stdout}")
     assert proc.returncode == 0, f"child failed (rc {proc.returncode}):\n{proc.stdout}\n{proc.stderr[-8000:]}"
     assert "device: Oclgrind" in proc.stdout, proc.stdout

@@ -30,6 +30,12 @@ def test_a_device_that_ends_loops_early_walks_in_windows(monkeypatch, tmp_path):
     assert device.loop_limit(chosen) is None                    # PoCL's own loops run whole
     monkeypatch.setenv("QR_CL_LOOP_LIMIT", "4096")
     assert device.loop_limit(chosen) == 4096
+    monkeypatch.setattr(device, "_TRIAL_SOURCE", cut)          # "none": no probe, no limit
+    device._probed_loop_limit.cache_clear()
+    monkeypatch.setenv("QR_CL_LOOP_LIMIT", "None")
+    assert device.loop_limit(chosen) is None
+    assert device._probed_loop_limit.cache_info().currsize == 0
+    monkeypatch.setattr(device, "_TRIAL_SOURCE", whole)
     for bad in ("12", "many"):
         monkeypatch.setenv("QR_CL_LOOP_LIMIT", bad)
         with pytest.raises(ValueError, match="QR_CL_LOOP_LIMIT"):
