@@ -84,13 +84,13 @@ def probe_walks(data: Path | None, rounds: int) -> None:
     import qr_cl
     from qr_cl.app.scenes.procedural import dense_room
     from qr_cl.render import rasterize_plan
-    from qr_cl.runtime import Runtime, device, padded_rows, runtime, to_device
+    from qr_cl.runtime import Runtime, context, padded_rows, runtime, to_device
     from qr_cl.stages import render_fused, select
     scenes = {"dense-room-300k": dense_room()}
     if data is not None and (data / "wakufactory-fox" / "fox.ply").is_file():
         fox = qr_cl.load_ply(data / "wakufactory-fox" / "fox.ply")
         scenes["fox"] = (fox, qr_cl.orbit_cameras(fox.means, 8, 640, 480)[1])
-    as_is = device.kernel_source
+    as_is = context.kernel_source
 
     def library_exp(name: str) -> str:
         return as_is(name).replace("exp_neg_lanes(sig)", "exp(-(sig))").replace("exp_neg(sig)", "exp(-(sig))")
@@ -98,14 +98,14 @@ def probe_walks(data: Path | None, rounds: int) -> None:
     builds["library exp"] = (Runtime(builds["exp_neg"][0].device), library_exp)
     plans = {}
     for label, (rt, source) in builds.items():
-        device.kernel_source = source
+        context.kernel_source = source
         for name, (g, cam) in scenes.items():
             plan = rasterize_plan(g.means, g.quats, g.scales, g.opacities, cam.viewmat, cam.K, 640, 480, rt=rt)
             rows = to_device(rt, padded_rows(np.random.default_rng(0).random((plan.n_gaussians, 3), np.float32), 4))
             plans[label, name] = plan, rows
             select(plan, "quantile", 40), select(plan, "volume"), render_fused(plan, rows, 3)   # builds
             rt.queue.finish()
-    device.kernel_source = as_is
+    context.kernel_source = as_is
     calls = {"Q-Render K=40 selection": lambda p, r: select(p, "quantile", 40),
              "V-Render selection": lambda p, r: select(p, "volume"),
              "fused V-Render, 3 channels": lambda p, r: render_fused(p, r, 3)}

@@ -25,6 +25,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ...render import rasterize_plan
+from ...runtime import SPLAT, SPLAT_FLOATS
 from ...scene import Camera, Gaussians
 from ...stages import select
 from ..scenes.folders import SceneData
@@ -117,7 +118,7 @@ def ray_depth_statistics(name: str, kind: str, gaussians: Gaussians, cameras: li
         w = walk["weights"].astype(np.float64)
         w /= np.maximum(w.sum(1, keepdims=True), 1e-30)
         cdf = np.cumsum(w, 1)
-        depths = plan.splats.get().reshape(-1, 8)[np.maximum(walk["ids"], 0), 6]
+        depths = plan.splats.get().reshape(-1, SPLAT_FLOATS)[np.maximum(walk["ids"], 0), SPLAT.depth]
         ray_labels = None if labels is None else np.where(walk["ids"] >= 0, labels[np.maximum(walk["ids"], 0)], -1)
         for sampler, stats in per.items():
             picks = select(plan, sampler, k, pixels).host()

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from ...render import rasterize
+from ...runtime import SPLAT, SPLAT_FLOATS
 from ...stages import Selection
 from ..images import plot_transmittance_profiles
 from ..scenes.folders import SceneData
@@ -31,7 +32,7 @@ def transmittance_profile(selection: Selection, ray: int) -> tuple[np.ndarray, n
     ids, w = h["ids"][ray, :n], h["weights"][ray, :n].astype(np.float64)
     scale = 1.0 if selection.sampler == "volume" else 1.0 - float(h["t_sel"][ray])
     t = 1.0 - np.concatenate([[0.0], np.cumsum(w * scale)])
-    depths = selection.plan.splats.get().reshape(-1, 8)[ids, 6] if n else np.zeros(0, np.float32)
+    depths = selection.plan.splats.get().reshape(-1, SPLAT_FLOATS)[ids, SPLAT.depth] if n else np.zeros(0, np.float32)
     return depths, t
 
 
