@@ -9,6 +9,7 @@ import torch
 
 import qr_cl
 from qr_cl.stages import blend_ref, project_ref, sh_ref
+from qr_cl.runtime import SPLAT, SPLAT_FLOATS
 
 SAMPLERS_K = [("volume", 40), ("quantile", 5), ("topk", 4), ("stratified", 4)]
 
@@ -318,12 +319,12 @@ def test_a_row_parts_geometry_gradient_equals_its_twin(random_scene, sampler, k)
     with device_rows(runtime(), dimage, cstride) as d, device_rows(runtime(), features[r0:r1], cstride) as f:
         weight_grads(sel, f, d, 6, row0=r0, out=d_w)
     kernel = splat_backward(sel, blend_backward_alpha(sel, d_w)).get()
-    splats = torch.from_numpy(plan.splats.get().reshape(-1, 8).astype(np.float64))
-    means2d, conics, opacities = (splats[:, c].clone().requires_grad_(True) for c in (slice(0, 2), slice(2, 5), 5))
+    splats = torch.from_numpy(plan.splats.get().reshape(-1, SPLAT_FLOATS).astype(np.float64))
+    means2d, conics, opacities = (splats[:, c].clone().requires_grad_(True) for c in (SPLAT.mean, SPLAT.conic, SPLAT.opacity))
     image, _ = blend_ref.render_rays(means2d, conics, opacities, torch.from_numpy(features[r0:r1]).double(),
                                      sel.host()["ids"], pixels, sampler != "volume", row0=r0)
     (image * torch.from_numpy(dimage).double()).sum().backward()
-    for got, twin in ((kernel[:, :2], means2d), (kernel[:, 2:5], conics), (kernel[:, 5], opacities)):
+    for got, twin in ((kernel[:, SPLAT.mean], means2d), (kernel[:, SPLAT.conic], conics), (kernel[:, SPLAT.opacity], opacities)):
         scale = float(twin.grad.abs().max())
         assert scale > 0
         np.testing.assert_allclose(got, twin.grad.numpy(), atol=2e-4 * scale, rtol=1e-3)

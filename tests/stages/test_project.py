@@ -23,7 +23,7 @@ def test_project_backward_equals_twin_gradients_on_hostile_scene():
     import torch
 
     from qr_cl.render import rasterize_plan
-    from qr_cl.runtime import runtime, to_device
+    from qr_cl.runtime import SPLAT, SPLAT_FLOATS, runtime, to_device
     from qr_cl.stages import project_ref
     from qr_cl.stages.project import project_backward
     g = hostile_scene()
@@ -34,8 +34,8 @@ def test_project_backward_equals_twin_gradients_on_hostile_scene():
     plan = rasterize_plan(g.means, g.quats, g.scales, g.opacities, viewmat, cam.K, W, H)
     visible = plan.radii.get()[:, 0] > 0
     rng = np.random.default_rng(0)
-    d_splats = np.where(visible[:, None], rng.normal(size=(len(g), 8)), 0).astype(np.float32)
-    d_splats[:, [5, 7]] = 0
+    d_splats = np.where(visible[:, None], rng.normal(size=(len(g), SPLAT_FLOATS)), 0).astype(np.float32)
+    d_splats[:, [SPLAT.opacity, SPLAT.sigma_max]] = 0
     rt = runtime()
     dev = [to_device(rt, x) for x in (g.means, g.quats, g.scales)]
     d_means, d_quats, d_scales, d_view = project_backward(rt, *dev, plan.radii, viewmat, cam.K, W, H,
@@ -43,7 +43,7 @@ def test_project_backward_equals_twin_gradients_on_hostile_scene():
     twin = [torch.tensor(x, dtype=torch.float64, requires_grad=True) for x in (g.means, g.quats, g.scales, viewmat)]
     e = project_ref.ewa(*twin, cam.K, W, H)
     d = torch.tensor(d_splats, dtype=torch.float64)
-    loss = (e["means2d"] * d[:, :2]).sum(1) + (e["conics"] * d[:, 2:5]).sum(1) + e["p"][:, 2] * d[:, 6]
+    loss = (e["means2d"] * d[:, SPLAT.mean]).sum(1) + (e["conics"] * d[:, SPLAT.conic]).sum(1) + e["p"][:, 2] * d[:, SPLAT.depth]
     loss[visible].sum().backward()
     for name, got, want in (("means", d_means.get(), twin[0].grad), ("quats", d_quats.get(), twin[1].grad),
                             ("scales", d_scales.get(), twin[2].grad)):
