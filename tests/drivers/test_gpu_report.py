@@ -14,9 +14,6 @@ import pytest
 
 from qr_cl.runtime.implementations import installed
 
-#: A fresh venv, the wheels downloaded and a whole report: minutes, so the slow suite runs it.
-pytestmark = pytest.mark.slow
-
 REPO = Path(__file__).resolve().parents[2]
 SCRIPT = REPO / "bench" / "gpu_report.sh"
 FILES = {"report.md", "report.json", "setup.log", "devices.log", "parity.log", "sweep.log", "gsplat.log", "twins.log"}
@@ -36,7 +33,7 @@ def carry(tmp_path_factory) -> Path:
     return folder
 
 
-@pytest.mark.parametrize("name", ["pocl", "intel"])
+@pytest.mark.parametrize("name", ["pocl", pytest.param("intel", marks=pytest.mark.slow)])
 def test_the_gpu_report_runs_bare_here(name, carry, tmp_path):
     if name != "pocl" and name not in installed():
         pytest.skip(f"{name} is not installed (bash tests/drivers/install.sh {name})")
