@@ -71,6 +71,7 @@ def test_implementations_side_by_side_lists_shared_rows_and_refusals():
     assert "fused" not in text.split("| --- |")[-1]          # not shared: not in the table
 
 
+@pytest.mark.slow
 def test_scale_sweep_measures_every_stage_and_memory_against_n(tmp_path, capsys):
     from qr_cl.app.bench.scale import STAGES, run_scale
     report = run_scale(tmp_path, scales=(2000, 8000), channels=16, size=(64, 48), rounds=1)

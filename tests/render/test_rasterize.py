@@ -42,7 +42,8 @@ def test_bad_input_shapes_are_named():
 
 
 @pytest.mark.parametrize("scene,channels", [("fox", 3), pytest.param("fox", 64, marks=pytest.mark.slow),
-                                            pytest.param("donut", 3, marks=pytest.mark.slow), ("donut", 64)])
+                                            pytest.param("donut", 3, marks=pytest.mark.slow),
+                                            pytest.param("donut", 64, marks=pytest.mark.slow)])
 def test_real_scenes_match_reference(request, scene, channels):
     if scene == "fox":
         g = request.getfixturevalue("fox")
