@@ -13,9 +13,10 @@ boundary, or whose Gaussian's alpha meets the 1/255 cut or whose T meets V-Rende
 rounding, decide differently under another compiler. rusticl (llvmpipe) ends loops after 65535
 iterations, so it walks in windows; its compiler does not fuse multiply-adds as PoCL's and
 Intel's do, so its projection differs from theirs in the last bits. The default suite renders the
-procedural scene (Intel: CPU shapes, first and cached runs; rusticl: GPU shapes, a first run);
-the slow suite adds the other shapes, the real scenes, the dense room, rusticl's self-check, and
-the kernel-against-twin tests on Intel's runtime. Skipped for implementations
+procedural scene on Intel's runtime (CPU shapes, first and cached runs); everything else is the
+slow suite's (`python -m pytest -m slow tests/drivers`): Intel's GPU shapes, rusticl (whose
+compiler takes minutes), the real scenes, the dense room, rusticl's self-check, and the
+kernel-against-twin tests on Intel's runtime. Skipped for implementations
 not installed.
 
 Run as a script (``python tests/drivers/test_parity.py OUT.npz SCENE...``) this file is the child.
@@ -99,9 +100,10 @@ def test_intel_equals_pocl_first_and_cached(shape, reference, tmp_path):
     check_equal_first_and_cached("intel", shape, ["random"], reference, tmp_path)
 
 
+@pytest.mark.slow
 def test_rusticl_equals_pocl_walking_in_windows(reference, tmp_path):
-    """On the procedural scene, GPU shapes, a first run (llvmpipe's compiler is slow; both shapes'
-    first and cached runs are the slow suite's, on the real scenes)."""
+    """On the procedural scene, GPU shapes, a first run: llvmpipe's compiler takes minutes (both
+    shapes' first and cached runs on the real scenes are further down)."""
     needs("rusticl")
     check_equal_first_and_cached("rusticl", "gpu", ["random"], reference, tmp_path, runs=("first",))
 
