@@ -116,6 +116,14 @@ class PatchEmbed(nn.Module):
         return self.proj(x).permute(0, 2, 3, 1)
 
 
+def neck(dim: int) -> nn.Sequential:
+    """The encoder's ``neck``: [B, dim, 64, 64] -> [B, 256, 64, 64] by a 1x1 and a 3x3 convolution
+    (bias-free), each followed by a channel LayerNorm (MobileSAM's TinyViT ends in the same)."""
+    return nn.Sequential(nn.Conv2d(dim, EMBED_CHANNELS, 1, bias=False), LayerNorm2d(EMBED_CHANNELS),
+                         nn.Conv2d(EMBED_CHANNELS, EMBED_CHANNELS, 3, padding=1, bias=False),
+                         LayerNorm2d(EMBED_CHANNELS))
+
+
 class ImageEncoder(nn.Module):
     """SAM's ViT image encoder: [B, 3, 1024, 1024] normalised pixels -> [B, 256, 64, 64]."""
 
@@ -126,9 +134,7 @@ class ImageEncoder(nn.Module):
         self.pos_embed = nn.Parameter(torch.zeros(1, grid, grid, dim))
         self.blocks = nn.ModuleList(EncoderBlock(dim, heads, 0 if i in global_blocks else WINDOW, grid)
                                     for i in range(depth))
-        self.neck = nn.Sequential(nn.Conv2d(dim, EMBED_CHANNELS, 1, bias=False), LayerNorm2d(EMBED_CHANNELS),
-                                  nn.Conv2d(EMBED_CHANNELS, EMBED_CHANNELS, 3, padding=1, bias=False),
-                                  LayerNorm2d(EMBED_CHANNELS))
+        self.neck = neck(dim)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         x = self.patch_embed(x) + self.pos_embed
