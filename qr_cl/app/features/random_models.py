@@ -1,11 +1,12 @@
 """Seeded random-weight CLIP and SAM models of any architecture, saved as the files their
-publishers ship (OpenCLIP ``.bin``/``.safetensors``, SAM ``.pth``), so the real loading code
-runs without downloaded weights: the tests' small models and the benchmark's real-size ones.
-A tiny BPE vocabulary in CLIP's file format goes with the small text towers.
+publishers ship (OpenCLIP ``.bin``/``.safetensors``, SAM ``.pth``, MobileSAM ``.pt``), so the real
+loading code runs without downloaded weights: the tests' small models and the benchmark's
+real-size ones. A tiny BPE vocabulary in CLIP's file format goes with the small text towers.
 
-Weights are N(0, 1/fan_in) (LayerNorms 1 and 0, biases 0). With such weights SAM's predicted
-IoU and mask stability are arbitrary, so :func:`random_sam` can lift the IoU head's bias and
-sharpen the mask logits (``confident``) for masks to pass LangSplat's thresholds.
+Weights are N(0, 1/fan_in) (LayerNorms 1 and 0, biases 0; BatchNorms 1 and 0 too, with running
+means N(0, 0.01) and variances uniform in [0.5, 1.5)). With such weights SAM's predicted IoU and
+mask stability are arbitrary, so :func:`random_sam` can lift the IoU head's bias and sharpen the
+mask logits (``confident``) for masks to pass LangSplat's thresholds.
 """
 from __future__ import annotations
 
@@ -19,10 +20,11 @@ from torch import nn
 from .clip_model import Clip, ClipArchitecture
 from .sam_encoder import LayerNorm2d
 from .sam_model import Sam, SamArchitecture
+from .tiny_vit import MOBILE_SAM_ENCODER
 from .tokenizer import byte_symbols
 from .weights import write_safetensors
 
-#: The real architectures (OpenCLIP's configs; SAM's build_sam), for timing.
+#: The real architectures (OpenCLIP's configs; SAM's and MobileSAM's build_sam), for timing.
 CLIP_ARCHITECTURES = {
     "ViT-B-16": ClipArchitecture(768, 12, 16, 224, 3072, 512, 512, 12, 77, 49408, 2048, False),
     "ViT-B-32": ClipArchitecture(768, 12, 32, 224, 3072, 512, 512, 12, 77, 49408, 2048, False),
@@ -34,6 +36,7 @@ SAM_ARCHITECTURES = {
     "vit_b": SamArchitecture(768, 12, 12, (2, 5, 8, 11)),
     "vit_l": SamArchitecture(1024, 24, 16, (5, 11, 17, 23)),
     "vit_h": SamArchitecture(1280, 32, 16, (7, 15, 23, 31)),
+    "mobile_sam": SamArchitecture(tiny_vit=MOBILE_SAM_ENCODER),
 }
 
 
@@ -41,11 +44,17 @@ def randomise(module: nn.Module, seed: int) -> nn.Module:
     """Set every parameter and buffer of ``module`` from a generator seeded with ``seed``
     (module docstring); returns it."""
     gen = torch.Generator().manual_seed(seed)
-    norms = {id(m.weight) for m in module.modules() if isinstance(m, (nn.LayerNorm, LayerNorm2d))}
+    norms = {id(m.weight) for m in module.modules() if isinstance(m, (nn.LayerNorm, LayerNorm2d, nn.BatchNorm2d))}
     with torch.no_grad():
         for name, tensor in module.state_dict(keep_vars=True).items():
+            if not tensor.is_floating_point():                  # a BatchNorm's num_batches_tracked
+                continue
             if id(tensor) in norms:
                 tensor.fill_(1.0)
+            elif name.endswith("running_mean"):
+                tensor.copy_(0.1 * torch.randn(tensor.shape, generator=gen))
+            elif name.endswith("running_var"):
+                tensor.copy_(0.5 + torch.rand(tensor.shape, generator=gen))
             elif name.endswith("bias") and tensor.ndim == 1:
                 tensor.zero_()
             else:

@@ -1,5 +1,6 @@
-"""SAM (ViT-B/L/H) from its official checkpoint, the variant read from the weight shapes, and
-point-prompted mask prediction on one image.
+"""SAM (ViT-B/L/H) or MobileSAM (a TinyViT image encoder, SAM's prompt encoder and mask decoder)
+from its official checkpoint, the variant read from the weight shapes, and point-prompted mask
+prediction on one image.
 
 :class:`Sam` holds ``image_encoder``, ``prompt_encoder`` and ``mask_decoder`` as the checkpoints
 name them. :class:`SamImage` is one image's embedding: the image is resized so its longer side is
@@ -24,6 +25,7 @@ from torch import nn
 from .errors import FeaturesError
 from .sam_decoder import MaskDecoder, PromptEncoder
 from .sam_encoder import SAM_IMAGE_SIZE, SAM_PATCH, WINDOW, ImageEncoder
+from .tiny_vit import MOBILE_SAM_ENCODER, TinyViT, TinyVitArchitecture, tiny_vit_architecture
 from .weights import load_state_dict, missing_keys
 
 #: SAM's pixel normalisation (0-255 RGB).
@@ -31,33 +33,43 @@ PIXEL_MEAN = (123.675, 116.28, 103.53)
 PIXEL_STD = (58.395, 57.12, 57.375)
 #: Variants by image-encoder width: name and attention heads.
 VARIANTS = {768: ("vit_b", 12), 1024: ("vit_l", 16), 1280: ("vit_h", 16)}
+#: The first weight of each image encoder: SAM's ViT, MobileSAM's TinyViT.
+VIT_KEY, TINY_VIT_KEY = "image_encoder.patch_embed.proj.weight", "image_encoder.patch_embed.seq.0.c.weight"
 
 
 @dataclass(frozen=True)
 class SamArchitecture:
-    """SAM's image encoder shape: ``width``, ``depth``, ``heads`` and the ``global_blocks``
-    (those attending over the whole map, the others over 14x14 windows)."""
+    """SAM's image encoder shape. A ViT (SAM): ``width``, ``depth``, ``heads`` and the
+    ``global_blocks`` (those attending over the whole map, the others over 14x14 windows). A
+    TinyViT (MobileSAM): its stages ``tiny_vit``, the ViT fields left 0."""
 
-    width: int
-    depth: int
-    heads: int
-    global_blocks: tuple[int, ...]
+    width: int = 0
+    depth: int = 0
+    heads: int = 0
+    global_blocks: tuple[int, ...] = ()
+    tiny_vit: TinyVitArchitecture | None = None
 
     @property
     def name(self) -> str:
-        """``vit_b``, ``vit_l``, ``vit_h`` (or ``vit_w<width>`` for another width)."""
+        """``vit_b``, ``vit_l``, ``vit_h`` (or ``vit_w<width>`` for another width); ``mobile_sam``
+        (or ``tiny_vit_w<widths>`` for other TinyViT stages)."""
+        if self.tiny_vit:
+            widths = "-".join(map(str, self.tiny_vit.widths))
+            return "mobile_sam" if self.tiny_vit == MOBILE_SAM_ENCODER else f"tiny_vit_w{widths}"
         return VARIANTS.get(self.width, (f"vit_w{self.width}", 0))[0]
 
 
 def sam_architecture(state: dict[str, torch.Tensor], path: Path) -> SamArchitecture:
-    """The encoder shape of a SAM state dict: width from the patch embedding, depth from the
-    blocks, global blocks from their relative-position tables (2*64-1 rows against 2*14-1), heads
-    from the table's width (head dim); FeaturesError naming ``path`` when it is no SAM."""
-    key = "image_encoder.patch_embed.proj.weight"
-    if key not in state:
+    """The encoder shape of a SAM state dict: a ViT's width from the patch embedding, depth from
+    the blocks, global blocks from their relative-position tables (2*64-1 rows against 2*14-1),
+    heads from the table's width (head dim); a TinyViT's stages (:func:`tiny_vit_architecture`).
+    FeaturesError naming ``path`` when it is neither SAM nor MobileSAM."""
+    if TINY_VIT_KEY in state:
+        return SamArchitecture(tiny_vit=tiny_vit_architecture(state, path))
+    if VIT_KEY not in state:
         kind = "a CLIP checkpoint" if "visual.conv1.weight" in state else "not a SAM checkpoint"
-        raise FeaturesError(f"{path}: {kind}: lacks {key} (--sam-weights)")
-    width = state[key].shape[0]
+        raise FeaturesError(f"{path}: {kind}: lacks {VIT_KEY} (SAM) or {TINY_VIT_KEY} (MobileSAM) (--sam-weights)")
+    width = state[VIT_KEY].shape[0]
     depth = len({k.split(".")[2] for k in state if k.startswith("image_encoder.blocks.")})
     rows = [state[f"image_encoder.blocks.{i}.attn.rel_pos_h"].shape for i in range(depth)
             if f"image_encoder.blocks.{i}.attn.rel_pos_h" in state]
@@ -73,7 +85,8 @@ class Sam(nn.Module):
     def __init__(self, arch: SamArchitecture):
         super().__init__()
         self.arch = arch
-        self.image_encoder = ImageEncoder(arch.width, arch.depth, arch.heads, arch.global_blocks)
+        self.image_encoder = (TinyViT(arch.tiny_vit) if arch.tiny_vit else
+                              ImageEncoder(arch.width, arch.depth, arch.heads, arch.global_blocks))
         self.prompt_encoder = PromptEncoder()
         self.mask_decoder = MaskDecoder()
         self.register_buffer("pixel_mean", torch.tensor(PIXEL_MEAN).view(-1, 1, 1), persistent=False)
@@ -133,8 +146,10 @@ class SamImage:
 
 
 def load_sam(path: str | os.PathLike) -> Sam:
-    """SAM from an official ``sam_vit_{b,l,h}`` checkpoint (variant from the shapes; CPU,
-    float32, eval mode); FeaturesError naming the file for a missing, unreadable or foreign one."""
+    """SAM from an official ``sam_vit_{b,l,h}`` checkpoint or MobileSAM from ``mobile_sam.pt``
+    (variant from the shapes; CPU, float32, eval mode: BatchNorms use their running statistics;
+    weights the model lacks, like MobileSAM's classifier head, are ignored); FeaturesError naming
+    the file for a missing, unreadable or foreign one."""
     path = Path(path)
     state, _ = load_state_dict(path, "--sam-weights")
     arch = sam_architecture(state, path)
