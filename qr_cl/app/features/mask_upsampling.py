@@ -1,0 +1,92 @@
+"""SAM's mask logits from its [256, 256] grid to the image's size, and a bound on their stability
+score that needs no upsampling.
+
+SAM upsamples the low-resolution logits bilinearly to 1024, crops the resized image and resizes
+that to the image's size (:func:`~.sam_model.upsampling_matrix`, one linear map per axis). Each
+output row (column) reads at most a few consecutive low-resolution rows (columns), its taps:
+:class:`Taps` holds them, and :func:`upsample` applies them, the same numbers as the dense maps.
+
+Every output logit is a convex combination of its taps (non-negative weights summing to one), so
+it is above a threshold only where the largest of its taps is, and above it wherever the smallest
+is. Counting, over the output pixels, the windows of taps whose maximum (minimum) passes gives an
+upper (lower) bound of the pixels that pass, from a max (min) pool of the low-resolution grid and
+the number of output rows and columns that read each window: :func:`stability_bound` is an upper
+bound of the stability score (:func:`~.masks.stability_scores`), a filter that drops no mask the
+exact score keeps.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+
+#: Margin on the thresholds of :func:`stability_bound` for the rounding of the upsampling's sums.
+ROUNDING_MARGIN = 1e-3
+
+
+@dataclass(frozen=True)
+class Taps:
+    """One axis of a linear resize: output i = sum_k ``weights``[i, k] * input[``first``[i] + k];
+    ``reads`` input entries are read in all (the rest may be left out), ``windows`` [reads] counts
+    the outputs whose taps start at each input."""
+
+    first: torch.Tensor
+    weights: torch.Tensor
+    reads: int
+    windows: torch.Tensor
+
+    @staticmethod
+    def of(matrix: torch.Tensor) -> "Taps":
+        """The taps of a dense [out, in] resize ``matrix`` (non-negative, rows summing to one)."""
+        nonzero = matrix != 0
+        first = nonzero.to(torch.int8).argmax(1)
+        last = matrix.shape[1] - 1 - nonzero.flip(1).to(torch.int8).argmax(1)
+        span = int((last - first).max()) + 1
+        index = (first[:, None] + torch.arange(span)).clamp(max=matrix.shape[1] - 1)
+        weights = torch.where(index <= last[:, None], matrix.gather(1, index), 0)
+        reads = int(last.max()) + 1
+        return Taps(first, weights, reads, torch.bincount(first, minlength=reads).to(matrix.dtype))
+
+    @property
+    def span(self) -> int:
+        """Taps per output."""
+        return self.weights.shape[1]
+
+    def to(self, device) -> "Taps":
+        return Taps(self.first.to(device), self.weights.to(device), self.reads, self.windows.to(device))
+
+
+def _resize(x: torch.Tensor, taps: Taps, dim: int) -> torch.Tensor:
+    """``x`` resized along ``dim`` by ``taps`` (the weighted sum of its taps per output)."""
+    out = None
+    for k in range(taps.span):
+        shape = [1] * x.dim()
+        shape[dim] = -1
+        term = x.index_select(dim, (taps.first + k).clamp(max=x.shape[dim] - 1)) * taps.weights[:, k].view(shape)
+        out = term if out is None else out.add_(term)
+    return out
+
+
+def upsample(low: torch.Tensor, rows: Taps, cols: Taps) -> torch.Tensor:
+    """[..., H, W] logits at the image's size from SAM's ``low`` [..., h, w] (h, w at least the
+    taps' reads)."""
+    return _resize(_resize(low, rows, low.dim() - 2), cols, low.dim() - 1)
+
+
+def _window_pool(low: torch.Tensor, rows: Taps, cols: Taps, sign: float) -> torch.Tensor:
+    """[M, rows.reads, cols.reads]: ``sign`` * the max of ``sign`` * ``low`` [M, h, w] over each
+    window of rows.span x cols.span entries that starts there."""
+    x = sign * low[:, :rows.reads + rows.span - 1, :cols.reads + cols.span - 1]
+    x = F.pad(x, (0, cols.span - 1, 0, rows.span - 1), value=-torch.inf)
+    return sign * F.max_pool2d(x[:, None], (rows.span, cols.span), stride=1)[:, 0, :rows.reads, :cols.reads]
+
+
+def stability_bound(low: torch.Tensor, rows: Taps, cols: Taps, offset: float) -> torch.Tensor:
+    """[M] upper bound of the stability score (pixels above +``offset`` over pixels above
+    -``offset``) of the upsampled logits of ``low`` [M, h, w] (module docstring); 1 where no
+    window is certainly above -``offset``."""
+    weights = rows.windows[:, None] * cols.windows[None, :]                          # outputs per window
+    above = ((_window_pool(low, rows, cols, 1.0) > offset - ROUNDING_MARGIN) * weights).sum((1, 2))
+    floor = ((_window_pool(low, rows, cols, -1.0) > -offset + ROUNDING_MARGIN) * weights).sum((1, 2))
+    return torch.where(floor > 0, above / floor.clamp_min(1), torch.ones_like(above))
