@@ -7,6 +7,7 @@ the unit CLIP embeddings of all levels' masks, level by level (LangSplat's dtype
 """
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass
 
 import numpy as np
@@ -42,18 +43,31 @@ def encode_crops(clip: Clip, crops: torch.Tensor, batch: int) -> torch.Tensor:
     return rows / rows.norm(dim=1, keepdim=True).clamp_min(1e-12)
 
 
+def mask_keys(masks: torch.Tensor) -> list[bytes]:
+    """A digest of each mask of ``masks`` [n, H, W] bool: equal masks, equal keys."""
+    bits = np.packbits(masks.cpu().numpy().reshape(len(masks), -1), axis=1)
+    return [hashlib.blake2b(row.tobytes(), digest_size=16).digest() for row in bits]
+
+
 def frame_features(sam: Sam, clip: Clip, image: np.ndarray, settings: MaskSettings = MaskSettings(),
                    batch: int = 32) -> FrameFeatures:
     """The features of ``image`` [H, W, 3] uint8 RGB (module docstring); ``batch`` crops go through
-    CLIP at a time."""
+    CLIP at a time. A mask that recurs at several levels (the default level holds the others'
+    masks) is cropped and encoded once: its crop depends on the mask alone."""
     pixels = torch.from_numpy(image.copy()).to(sam.device)
     maps, rows, counts = [], [], []
+    encoded: dict[bytes, torch.Tensor] = {}
     offset = 0
     for level in level_masks(sam, image, settings):
         level = overlap_filter(level)
         ids = id_map(level)
         maps.append(torch.where(ids >= 0, ids + offset, -1))
-        rows.append(encode_crops(clip, mask_crops(pixels, level, clip.arch.image_size).to(sam.device), batch))
+        keys = mask_keys(level.masks)
+        new = sorted({k: i for i, k in enumerate(keys) if k not in encoded}.values())
+        crops = mask_crops(pixels, level.take(torch.tensor(new, dtype=torch.long)), clip.arch.image_size)
+        encoded.update(zip((keys[i] for i in new), encode_crops(clip, crops.to(sam.device), batch)))
+        rows.append(torch.stack([encoded[k] for k in keys]) if keys else
+                    torch.zeros(0, clip.arch.embed_dim, device=sam.device))
         counts.append(len(level))
         offset += len(level)
     ids = torch.stack(maps).cpu().numpy().astype(np.float32)

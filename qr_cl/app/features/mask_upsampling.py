@@ -43,8 +43,8 @@ class Taps:
         first = nonzero.to(torch.int8).argmax(1)
         last = matrix.shape[1] - 1 - nonzero.flip(1).to(torch.int8).argmax(1)
         span = int((last - first).max()) + 1
-        index = (first[:, None] + torch.arange(span)).clamp(max=matrix.shape[1] - 1)
-        weights = torch.where(index <= last[:, None], matrix.gather(1, index), 0)
+        index = first[:, None] + torch.arange(span)
+        weights = torch.where(index <= last[:, None], matrix.gather(1, index.clamp(max=matrix.shape[1] - 1)), 0)
         reads = int(last.max()) + 1
         return Taps(first, weights, reads, torch.bincount(first, minlength=reads).to(matrix.dtype))
 
@@ -84,9 +84,9 @@ def _window_pool(low: torch.Tensor, rows: Taps, cols: Taps, sign: float) -> torc
 
 def stability_bound(low: torch.Tensor, rows: Taps, cols: Taps, offset: float) -> torch.Tensor:
     """[M] upper bound of the stability score (pixels above +``offset`` over pixels above
-    -``offset``) of the upsampled logits of ``low`` [M, h, w] (module docstring); 1 where no
-    window is certainly above -``offset``."""
+    -``offset``, at most 1) of the upsampled logits of ``low`` [M, h, w] (module docstring); 1
+    where no window is certainly above -``offset``."""
     weights = rows.windows[:, None] * cols.windows[None, :]                          # outputs per window
     above = ((_window_pool(low, rows, cols, 1.0) > offset - ROUNDING_MARGIN) * weights).sum((1, 2))
     floor = ((_window_pool(low, rows, cols, -1.0) > -offset + ROUNDING_MARGIN) * weights).sum((1, 2))
-    return torch.where(floor > 0, above / floor.clamp_min(1), torch.ones_like(above))
+    return torch.where(floor > 0, (above / floor.clamp_min(1)).clamp_max(1), torch.ones_like(above))

@@ -4,7 +4,9 @@ A grid of single-point prompts covers the image and, with ``crop_layers`` = 1, e
 overlapping crops (its own SAM embedding). Each point gives SAM's three multimask outputs;
 LangSplat's levels are all of them ("default") and each output alone ("s", "m", "l"). Per level,
 as SAM's generator does: masks whose predicted IoU is <= ``pred_iou`` or whose stability (IoU
-of the logits thresholded at +1 and -1) is < ``stability`` are dropped, so are masks near a crop
+of the logits thresholded at +1 and -1) is < ``stability`` are dropped (the cheap tests first:
+the IoU before the masks are upscaled, a bound of the stability before they are upsampled to
+the crop's size, :mod:`.mask_upsampling`), so are masks near a crop
 edge that is not an image edge; box NMS removes duplicates within a crop (by predicted IoU) and
 between crops (preferring smaller crops); holes and islands smaller than ``min_area`` px are
 removed, and box NMS runs again preferring masks that needed no such change.
@@ -19,6 +21,7 @@ import torch
 from scipy import ndimage
 
 from .boxes import mask_boxes, near_crop_edge, nms
+from .mask_upsampling import stability_bound
 from .sam_model import Sam
 
 #: LangSplat's mask levels, in the order of ``_s.npy``.
@@ -111,11 +114,16 @@ def _crop_masks(sam: Sam, image: np.ndarray, crop: tuple[int, int, int, int], se
     offset = torch.tensor([x0, y0, x0, y0], dtype=torch.float32, device=sam.device)
     kept: list[list[Masks]] = [[] for _ in LEVELS]
     for start in range(0, len(points), settings.points_per_batch):
-        logits, iou = view.predict(points[start:start + settings.points_per_batch])
-        logits, iou = logits.flatten(0, 1), iou.flatten()
-        output = torch.arange(len(iou), device=iou.device) % 3
-        keep = iou > settings.pred_iou
-        logits, iou, output = logits[keep], iou[keep], output[keep]
+        tokens, iou = view.decode(points[start:start + settings.points_per_batch])
+        passing = iou > settings.pred_iou                                  # the IoU filter before any upsampling
+        prompts = passing.any(1)
+        low = view.low_masks(tokens.take(prompts)).flatten(0, 1)
+        keep = passing[prompts].flatten()
+        output = (torch.arange(len(keep), device=keep.device) % 3)[keep]
+        low, iou = low[keep], iou[prompts].flatten()[keep]
+        keep = stability_bound(low, view.rows, view.cols, settings.stability_offset) >= settings.stability
+        low, iou, output = low[keep], iou[keep], output[keep]
+        logits = view.upsample(low)                                        # only the masks the bound leaves
         stab = stability_scores(logits, settings.stability_offset)
         keep = stab >= settings.stability
         masks = logits[keep] > 0

@@ -38,6 +38,8 @@ from .sam_decoder import MaskDecoder, TokenAttention
 
 #: The decoder's outputs kept: the three multimask outputs (index 0 is the single-mask output).
 MULTIMASK = (1, 2, 3)
+#: Low-resolution mask logits per image token and axis (two 2x upscaling convolutions).
+UPSCALE = 4
 #: Image tokens upscaled at a time (a tile's temporaries stay in the CPU's caches).
 TOKEN_TILE = 256
 
@@ -186,7 +188,7 @@ class PointDecoder:
             return self.decoder.iou_prediction_head(tokens.hs[:, 0])[:, list(MULTIMASK)]
 
     def masks(self, tokens: PromptTokens, rows: int | None = None, cols: int | None = None) -> torch.Tensor:
-        """[B, 3, 4 * rows, 4 * cols] mask logits of the multimask outputs over the first ``rows``
+        """[B, 3, UPSCALE * rows, UPSCALE * cols] mask logits of the multimask outputs over the first ``rows``
         x ``cols`` image tokens (all by default; the logits of SAM's [256, 256] grid there)."""
         dec = self.decoder
         g = self.grid
@@ -219,4 +221,4 @@ class PointDecoder:
                 low.append(up.flatten(1, 2).unflatten(-1, (4, -1)).flatten(1, 2) @ hyper)   # [B, tile*16, 3]
             low = torch.cat(low, 1)
         low = low.view(b, rows, cols, 2, 2, 2, 2, len(MULTIMASK))                     # i, j, a, c, a2, c2
-        return low.permute(0, 7, 1, 3, 5, 2, 4, 6).reshape(b, len(MULTIMASK), 4 * rows, 4 * cols)
+        return low.permute(0, 7, 1, 3, 5, 2, 4, 6).reshape(b, len(MULTIMASK), UPSCALE * rows, UPSCALE * cols)

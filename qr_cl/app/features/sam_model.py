@@ -23,6 +23,8 @@ from PIL import Image
 from torch import nn
 
 from .errors import FeaturesError
+from .mask_upsampling import Taps, upsample
+from .point_decoder import UPSCALE, PointDecoder, PromptTokens
 from .sam_decoder import MaskDecoder, PromptEncoder
 from .sam_encoder import SAM_IMAGE_SIZE, SAM_PATCH, WINDOW, ImageEncoder
 from .tiny_vit import MOBILE_SAM_ENCODER, TinyViT, TinyVitArchitecture, tiny_vit_architecture
@@ -121,7 +123,9 @@ def upsampling_matrix(out: int, crop: int, low: int) -> torch.Tensor:
 @dataclass
 class SamImage:
     """One image's SAM embedding [1, 256, 64, 64] and dense positions; ``size`` (H, W) of the
-    image, ``resized`` (H, W) of it in the 1024 input."""
+    image, ``resized`` (H, W) of it in the 1024 input. Prompts are decoded by a
+    :class:`~.point_decoder.PointDecoder` of the embedding, and the masks upsampled by the taps
+    ``rows`` and ``cols`` of SAM's resizes (:mod:`.mask_upsampling`)."""
 
     sam: Sam
     embedding: torch.Tensor
@@ -129,20 +133,39 @@ class SamImage:
     size: tuple[int, int]
     resized: tuple[int, int]
 
-    def predict(self, points: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
-        """(logits [B, 3, H, W], predicted IoU [B, 3]) of the three multimask outputs for ``points``
-        [B, 2] (x, y px in the image), one foreground point per prompt."""
+    def __post_init__(self):
+        sam, (h, w), (rh, rw) = self.sam, self.size, self.resized
+        dense = sam.prompt_encoder.no_mask_embed.weight.view(1, -1, 1, 1)
+        self.decoder = PointDecoder(sam.mask_decoder, self.embedding, self.positions, dense)
+        low = SAM_IMAGE_SIZE // SAM_PATCH * UPSCALE
+        self.rows = Taps.of(upsampling_matrix(h, rh, low)).to(sam.device)
+        self.cols = Taps.of(upsampling_matrix(w, rw, low)).to(sam.device)
+
+    def decode(self, points: np.ndarray) -> tuple[PromptTokens, torch.Tensor]:
+        """(the decoder's tokens, predicted IoU [B, 3] of the three multimask outputs) for
+        ``points`` [B, 2] (x, y px in the image), one foreground point per prompt."""
         sam, (h, w), (rh, rw) = self.sam, self.size, self.resized
         xy = torch.as_tensor(points, dtype=torch.float32, device=sam.device) * torch.tensor(
             [rw / w, rh / h], device=sam.device)
         with torch.no_grad():
             sparse = sam.prompt_encoder.embed_points(xy[:, None], torch.ones(len(xy), 1, device=sam.device))
-            dense = sam.prompt_encoder.no_mask_embed.weight.view(1, -1, 1, 1)
-            low, iou = sam.mask_decoder(self.embedding, self.positions, sparse, dense)
-            low = low[:, 1:]
-            ay = upsampling_matrix(h, rh, low.shape[-2]).to(sam.device)
-            ax = upsampling_matrix(w, rw, low.shape[-1]).to(sam.device)
-            return ay @ low @ ax.T, iou[:, 1:]
+        tokens = self.decoder.transform(sparse)
+        return tokens, self.decoder.iou(tokens)
+
+    def low_masks(self, tokens: PromptTokens) -> torch.Tensor:
+        """[B, 3, h, w] low-resolution logits of the three multimask outputs over the part of
+        SAM's 256x256 grid that the upsampling reads."""
+        return self.decoder.masks(tokens, -(-self.rows.reads // UPSCALE), -(-self.cols.reads // UPSCALE))
+
+    def upsample(self, low: torch.Tensor) -> torch.Tensor:
+        """[..., H, W] logits at the image's size of ``low`` [..., h, w] (:meth:`low_masks`)."""
+        return upsample(low, self.rows, self.cols)
+
+    def predict(self, points: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+        """(logits [B, 3, H, W], predicted IoU [B, 3]) of the three multimask outputs for ``points``
+        [B, 2] (x, y px in the image), one foreground point per prompt."""
+        tokens, iou = self.decode(points)
+        return self.upsample(self.low_masks(tokens)), iou
 
 
 def load_sam(path: str | os.PathLike) -> Sam:
