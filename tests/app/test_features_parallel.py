@@ -250,7 +250,8 @@ def test_a_worker_error_stops_the_run(models, tmp_path, capsys):
     ("--workers", "0", "expected a positive integer"), ("--workers", "two", "expected a positive integer")])
 def test_bad_shard_or_workers_is_one_line(option, value, expected, capsys):
     with pytest.raises(SystemExit) as exit_:
-        cli.main(["features", "room", "--images", "i", "--clip-weights", "c", "--sam-weights", "s", f"{option}={value}"])
+        cli.main(["features", "room", "--images", "i", "--clip-weights", "c", "--sam-weights", "s",
+                  f"{option}={value}"])
     err = capsys.readouterr().err
     assert exit_.value.code == 2 and err.count("\n") == 1 and "Traceback" not in err, err
     assert err.startswith(f"qr-cl features: error: argument {option}: {expected}") and value in err, err
