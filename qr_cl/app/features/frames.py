@@ -45,7 +45,7 @@ def encode_crops(clip: Clip, crops: torch.Tensor, batch: int) -> torch.Tensor:
 
 def mask_keys(masks: torch.Tensor) -> list[bytes]:
     """A digest of each mask of ``masks`` [n, H, W] bool: equal masks, equal keys."""
-    bits = np.packbits(masks.cpu().numpy().reshape(len(masks), -1), axis=1)
+    bits = np.packbits(masks.flatten(1).cpu().numpy(), axis=1)
     return [hashlib.blake2b(row.tobytes(), digest_size=16).digest() for row in bits]
 
 
