@@ -17,7 +17,7 @@ from dataclasses import asdict
 from pathlib import Path
 
 from ..arguments import nonnegative_int, positive_int
-from ..process import process_cores
+from ..process import keep_freed_memory, process_cores
 from .errors import FeaturesError
 from .shards import Shard, shard_spec
 
@@ -140,6 +140,7 @@ def _run(args: argparse.Namespace) -> int:
     device = _device(args.device)
     threads = args.threads or process_cores()
     torch.set_num_threads(threads)
+    keep_freed_memory()                       # the decoder's temporaries: reused, not faulted in per batch
     clip = load_clip(args.clip_weights, args.clip_model).to(device)
     if args.classes:
         _classes(args, clip, scene)

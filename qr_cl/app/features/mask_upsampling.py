@@ -19,7 +19,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-import torch.nn.functional as F
 
 #: Margin on the thresholds of :func:`stability_bound` for the rounding of the upsampling's sums.
 ROUNDING_MARGIN = 1e-3
@@ -57,36 +56,51 @@ class Taps:
         return Taps(self.first.to(device), self.weights.to(device), self.reads, self.windows.to(device))
 
 
-def _resize(x: torch.Tensor, taps: Taps, dim: int) -> torch.Tensor:
-    """``x`` resized along ``dim`` by ``taps`` (the weighted sum of its taps per output)."""
+def _resize(x: torch.Tensor, taps: Taps) -> torch.Tensor:
+    """[M, out, k] of ``x`` [M, n, k] resized along its middle axis by ``taps`` (whole rows of k
+    gathered at a time)."""
     out = None
     for k in range(taps.span):
-        shape = [1] * x.dim()
-        shape[dim] = -1
-        term = x.index_select(dim, (taps.first + k).clamp(max=x.shape[dim] - 1)) * taps.weights[:, k].view(shape)
+        term = x.index_select(1, (taps.first + k).clamp(max=x.shape[1] - 1)) * taps.weights[:, k, None]
         out = term if out is None else out.add_(term)
     return out
 
 
 def upsample(low: torch.Tensor, rows: Taps, cols: Taps) -> torch.Tensor:
     """[..., H, W] logits at the image's size from SAM's ``low`` [..., h, w] (h, w at least the
-    taps' reads)."""
-    return _resize(_resize(low, rows, low.dim() - 2), cols, low.dim() - 1)
+    taps' reads): the columns, then the rows."""
+    flat = low.flatten(0, -3) if low.dim() > 2 else low[None]
+    wide = _resize(flat.transpose(1, 2), cols).transpose(1, 2).contiguous()          # [M, h, W]
+    return _resize(wide, rows).view(*low.shape[:-2], len(rows.first), len(cols.first))
 
 
-def _window_pool(low: torch.Tensor, rows: Taps, cols: Taps, sign: float) -> torch.Tensor:
-    """[M, rows.reads, cols.reads]: ``sign`` * the max of ``sign`` * ``low`` [M, h, w] over each
-    window of rows.span x cols.span entries that starts there."""
-    x = sign * low[:, :rows.reads + rows.span - 1, :cols.reads + cols.span - 1]
-    x = F.pad(x, (0, cols.span - 1, 0, rows.span - 1), value=-torch.inf)
-    return sign * F.max_pool2d(x[:, None], (rows.span, cols.span), stride=1)[:, 0, :rows.reads, :cols.reads]
+def _window_extreme(low: torch.Tensor, rows: Taps, cols: Taps, largest: bool) -> torch.Tensor:
+    """[M, rows.reads, cols.reads]: the max (``largest``) or min of ``low`` [M, h, w] over each
+    window of rows.span x cols.span entries that starts there (cut at the grid's end)."""
+    pick = torch.maximum if largest else torch.minimum
+    x = low[:, :rows.reads + rows.span - 1, :cols.reads + cols.span - 1]
+    rows_out = x[:, :rows.reads]
+    for k in range(1, rows.span):
+        rows_out = pick(rows_out, x[:, k:k + rows.reads].expand_as(rows_out) if x.shape[1] >= k + rows.reads
+                        else torch.cat([x[:, k:], x[:, -1:].expand(-1, k + rows.reads - x.shape[1], -1)], 1))
+    out = rows_out[..., :cols.reads]
+    for k in range(1, cols.span):
+        shifted = rows_out[..., k:k + cols.reads]
+        if shifted.shape[-1] < cols.reads:
+            shifted = torch.cat([shifted, rows_out[..., -1:].expand(-1, -1, cols.reads - shifted.shape[-1])], -1)
+        out = pick(out, shifted)
+    return out
+
+
+def _count(passing: torch.Tensor, rows: Taps, cols: Taps) -> torch.Tensor:
+    """[M] output pixels whose window passes, of ``passing`` [M, rows.reads, cols.reads] bool."""
+    return (rows.windows @ passing.to(rows.windows.dtype)) @ cols.windows
 
 
 def stability_bound(low: torch.Tensor, rows: Taps, cols: Taps, offset: float) -> torch.Tensor:
     """[M] upper bound of the stability score (pixels above +``offset`` over pixels above
     -``offset``, at most 1) of the upsampled logits of ``low`` [M, h, w] (module docstring); 1
     where no window is certainly above -``offset``."""
-    weights = rows.windows[:, None] * cols.windows[None, :]                          # outputs per window
-    above = ((_window_pool(low, rows, cols, 1.0) > offset - ROUNDING_MARGIN) * weights).sum((1, 2))
-    floor = ((_window_pool(low, rows, cols, -1.0) > -offset + ROUNDING_MARGIN) * weights).sum((1, 2))
+    above = _count(_window_extreme(low, rows, cols, True) > offset - ROUNDING_MARGIN, rows, cols)
+    floor = _count(_window_extreme(low, rows, cols, False) > -offset + ROUNDING_MARGIN, rows, cols)
     return torch.where(floor > 0, (above / floor.clamp_min(1)).clamp_max(1), torch.ones_like(above))

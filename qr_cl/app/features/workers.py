@@ -62,6 +62,9 @@ def _serve(conn: Connection, setup: WorkerSetup) -> None:
         from .sam_model import load_sam
         from .store import write_frame
 
+        from ..process import keep_freed_memory
+
+        keep_freed_memory()
         torch.set_num_threads(setup.threads)
         device = torch.device(setup.device)
         clip = load_clip(setup.clip_weights, setup.clip_model).to(device)
