@@ -32,7 +32,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                                         "common image extension")
     parser.add_argument("--clip-weights", required=True, help="OpenCLIP (.bin/.safetensors) or OpenAI (.pt) CLIP "
                                                               "ViT weights file, e.g. ViT-B-16 laion2b_s34b_b88k")
-    parser.add_argument("--sam-weights", required=True, help="SAM checkpoint sam_vit_{b,l,h}_*.pth")
+    parser.add_argument("--sam-weights", required=True, help="SAM checkpoint sam_vit_{b,l,h}_*.pth, or MobileSAM's "
+                                                            "mobile_sam.pt (the fast profile)")
     parser.add_argument("--clip-model", help="OpenCLIP name of the CLIP weights (e.g. ViT-B-16, ViT-B-32-quickgelu); "
                                              "checked against the file, which gives it by default")
     parser.add_argument("--clip-vocab", help="CLIP's bpe_simple_vocab_16e6.txt.gz for --classes (default: beside "
@@ -49,7 +50,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "e.g. 2/8 in an array job; N such runs write every frame once (default 1/1)")
     parser.add_argument("--batch", type=positive_int, default=32, help="mask crops per CLIP batch (default 32)")
     parser.add_argument("--points-per-side", type=positive_int, default=32, help="SAM point grid per side (LangSplat: 32)")
-    parser.add_argument("--crop-layers", type=nonnegative_int, default=1, help="SAM crop layers (LangSplat: 1, i.e. 1+4 crops)")
+    parser.add_argument("--crop-layers", type=nonnegative_int, default=1, help="SAM crop layers (LangSplat: 1, i.e. 1+4 crops; "
+                                                                                 "0: the fast setting, one embedding a frame)")
     parser.add_argument("--overwrite", action="store_true", help="redo frames already written")
 
 
