@@ -23,8 +23,9 @@ each attention head h (8 heads of width d) of the decoder's cross-attentions bec
   image, then two [N, 8*7+1] x [8*7+1, 256] products per prompt instead of [N, C] x [C, 256].
 - The second convolution is per pixel too ([64] -> [2*2*32] channels last); the masks stay in
   that sub-pixel order until the last reshape. Only the three multimask outputs are decoded
-  (the single-mask output is never used), only for the token rows and columns the caller's crop
-  reads, and only for the prompts asked for.
+  (the single-mask output is never used; the last attention runs for the four output tokens that
+  are read), only for the token rows and columns the caller's crop reads, and only for the
+  prompts asked for.
 """
 from __future__ import annotations
 
@@ -38,6 +39,8 @@ from .sam_decoder import MaskDecoder, TokenAttention
 
 #: The decoder's outputs kept: the three multimask outputs (index 0 is the single-mask output).
 MULTIMASK = (1, 2, 3)
+#: The output tokens read after the transformer: the IoU token and the kept outputs' mask tokens.
+READ_TOKENS = (0,) + tuple(1 + i for i in MULTIMASK)
 #: Low-resolution mask logits per image token and axis (two 2x upscaling convolutions).
 UPSCALE = 4
 #: Image tokens upscaled at a time (a tile's temporaries stay in the CPU's caches).
@@ -105,7 +108,8 @@ def _apply(update: MapUpdate, x: torch.Tensor, norm: torch.nn.LayerNorm) -> torc
 
 @dataclass
 class PromptTokens:
-    """What the transformer leaves for the masks of B prompts: ``hs`` [B, 5, C] the output tokens,
+    """What the transformer leaves for the masks of B prompts: ``hs`` [B, 4, C] the output tokens
+    of :data:`READ_TOKENS`,
     ``first``, ``second`` the two blocks' updates of the image map (their statistics included)."""
 
     hs: torch.Tensor
@@ -179,6 +183,8 @@ class PointDecoder:
             keys = _apply(second_update, keys, second.norm4)
 
             final = dec.transformer.final_attn_token_to_image
+            read = list(READ_TOKENS)                                                  # the last attention's other
+            queries, tokens = queries[:, read], tokens[:, read]                       # outputs are never read
             queries = queries + _tokens_to_image(final, queries + tokens, keys + self.pe, keys)
             return PromptTokens(dec.transformer.norm_final_attn(queries), first_update, second_update)
 
@@ -204,7 +210,8 @@ class PointDecoder:
             return a, torch.cat([update.values @ w, w.sum(0).expand(b, 1, -1)], 1)          # [B, h*T + 1, 256]
 
         with torch.no_grad():
-            hyper = torch.stack([dec.output_hypernetworks_mlps[i](tokens.hs[:, 1 + i]) for i in MULTIMASK], 2)
+            mlps = dec.output_hypernetworks_mlps
+            hyper = torch.stack([mlps[i](tokens.hs[:, 1 + k]) for k, i in enumerate(MULTIMASK)], 2)  # [B, 32, 3]
             first, first_values = augmented(tokens.first, self.conv_w1)
             second, second_values = augmented(tokens.second, self.conv_w2)
             keys, rstd1, rstd2 = window(self.keys_conv), window(tokens.first.rstd), window(tokens.second.rstd)
