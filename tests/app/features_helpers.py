@@ -6,7 +6,10 @@ import json
 from pathlib import Path
 
 import numpy as np
+import torch
 from PIL import Image
+
+from qr_cl.app import cli
 
 from qr_cl.app.features.clip_model import ClipArchitecture
 from qr_cl.app.features.random_models import random_clip, random_sam, save_weights, write_vocabulary
@@ -63,3 +66,24 @@ def drawn_scene(folder: Path, frames: int = 3, width: int = 64, height: int = 48
         cams.append(Camera(np.eye(4, dtype=np.float32), 50.0, 50.0, width / 2, height / 2, width, height, f"view_{i}"))
     write_cameras(scene / "cameras.json", cams)
     return scene, images
+
+
+def run_features(scene: Path, images: Path, models: dict[str, Path], *extra: str) -> int:
+    """``qr-cl features`` on ``scene`` with the tiny ``models``, one thread, the fast mask settings."""
+    return cli.main(["features", str(scene), "--images", str(images), "--clip-weights", str(models["clip"]),
+                     "--sam-weights", str(models["sam"]), "--threads", "1", *FAST, *extra])
+
+
+def assert_matches_predictor(predictor_class, reference, ours, image: np.ndarray, points: np.ndarray) -> None:
+    """``ours`` (a loaded :class:`~qr_cl.app.features.sam_model.Sam`) embeds ``image`` and predicts
+    the multimask logits and IoU of ``points`` as the official ``predictor_class`` of ``reference``."""
+    predictor = predictor_class(reference)
+    predictor.set_image(image)
+    coords = torch.as_tensor(predictor.transform.apply_coords(points, image.shape[:2]), dtype=torch.float32)
+    logits, iou, _ = predictor.predict_torch(coords[:, None], torch.ones(len(points), 1), multimask_output=True,
+                                             return_logits=True)
+    view = ours.embed(image)
+    torch.testing.assert_close(view.embedding, predictor.features, atol=1e-4, rtol=1e-4)
+    got_logits, got_iou = view.predict(points)
+    torch.testing.assert_close(got_iou, iou, atol=1e-4, rtol=1e-4)
+    torch.testing.assert_close(got_logits, logits, atol=1e-3, rtol=1e-3)

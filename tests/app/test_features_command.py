@@ -13,17 +13,12 @@ from qr_cl.app import cli
 from qr_cl.app.features import command, store
 from qr_cl.app.scenes.folders import level_rows, load_scene_folder
 from qr_cl.scene import load_ply, orbit_cameras
-from tests.app.features_helpers import CLASS_WORDS, FAST, drawn_scene, write_cameras, write_models
+from tests.app.features_helpers import CLASS_WORDS, drawn_scene, run_features, write_cameras, write_models
 
 
 @pytest.fixture(scope="module")
 def models(tmp_path_factory):
     return write_models(tmp_path_factory.mktemp("weights"))
-
-
-def _features(scene, images, models, *extra):
-    return cli.main(["features", str(scene), "--images", str(images), "--clip-weights", str(models["clip"]),
-                     "--sam-weights", str(models["sam"]), "--threads", "1", *FAST, *extra])
 
 
 @pytest.mark.data
@@ -37,7 +32,7 @@ def test_rendered_fox_views_train(shared_data, models, tmp_path):
         cam.name = f"{i:03d}_rgb"
     write_cameras(scene / "cameras.json", cams)
     assert cli.main(["render", str(fox), "--cameras", str(scene / "cameras.json"), "--out", str(tmp_path / "views")]) == 0
-    assert _features(scene, tmp_path / "views", models, "--points-per-side", "4", "--classes", ",".join(CLASS_WORDS)) == 0
+    assert run_features(scene, tmp_path / "views", models, "--points-per-side", "4", "--classes", ",".join(CLASS_WORDS)) == 0
 
     counts = []
     for cam in cams:
@@ -77,7 +72,7 @@ def _tree(folder):
 
 def test_resume_writes_the_same_bytes(models, tmp_path, monkeypatch):
     straight, images = drawn_scene(tmp_path / "a")
-    assert _features(straight, images, models) == 0
+    assert run_features(straight, images, models) == 0
 
     resumed, images_b = drawn_scene(tmp_path / "b")
     written = []
@@ -90,13 +85,13 @@ def test_resume_writes_the_same_bytes(models, tmp_path, monkeypatch):
         written.append(stem)
     monkeypatch.setattr(store, "write_frame", write_then_stop)
     with pytest.raises(KeyboardInterrupt):
-        _features(resumed, images_b, models)
+        run_features(resumed, images_b, models)
     monkeypatch.undo()
     lang = resumed / "language_features"
     assert sorted(p.name for p in lang.glob("*.npy")) == ["view_0_f.npy", "view_0_s.npy"]
     (lang / ".view_1_f.npy.x.tmp").write_bytes(b"half a file")            # a kill's leftover
     (lang / "view_2_f.npy").write_bytes(b"no _s.npy yet: not done")       # half a frame is redone
-    assert _features(resumed, images_b, models) == 0
+    assert run_features(resumed, images_b, models) == 0
     assert not (lang / ".view_1_f.npy.x.tmp").exists()                    # removed as stale
     assert _tree(lang) == _tree(straight / "language_features")
 
@@ -112,27 +107,27 @@ def _fails(capsys, code, *words):
 def test_bad_weights_files(models, tmp_path, capsys):
     scene, images = drawn_scene(tmp_path / "s", frames=1)
     missing = tmp_path / "nowhere.bin"
-    _fails(capsys, _features(scene, images, {**models, "clip": missing}), missing, "--clip-weights")
+    _fails(capsys, run_features(scene, images, {**models, "clip": missing}), missing, "--clip-weights")
     corrupt = tmp_path / "sam_vit_h_4b8939.pth"
     corrupt.write_bytes(b"PK\x03\x04 not really a zip" * 10)
-    _fails(capsys, _features(scene, images, {**models, "sam": corrupt}), corrupt, "not a readable weights file")
+    _fails(capsys, run_features(scene, images, {**models, "sam": corrupt}), corrupt, "not a readable weights file")
     cut = tmp_path / "cut.safetensors"
     cut.write_bytes(models["clip"].read_bytes()[:-1000])
-    _fails(capsys, _features(scene, images, {**models, "clip": cut}), cut, "truncated")
+    _fails(capsys, run_features(scene, images, {**models, "clip": cut}), cut, "truncated")
     empty = tmp_path / "empty.pth"
     empty.write_bytes(b"")
-    _fails(capsys, _features(scene, images, {**models, "sam": empty}), empty, "empty")
-    _fails(capsys, _features(scene, images, {"clip": models["sam"], "sam": models["sam"]}),
+    _fails(capsys, run_features(scene, images, {**models, "sam": empty}), empty, "empty")
+    _fails(capsys, run_features(scene, images, {"clip": models["sam"], "sam": models["sam"]}),
            models["sam"], "a SAM checkpoint")
-    _fails(capsys, _features(scene, images, {"clip": models["clip"], "sam": models["clip"]}),
+    _fails(capsys, run_features(scene, images, {"clip": models["clip"], "sam": models["clip"]}),
            models["clip"], "a CLIP checkpoint")
 
 
 def test_mismatched_encoder(models, tmp_path, capsys):
     scene, images = drawn_scene(tmp_path / "s", frames=1)
-    _fails(capsys, _features(scene, images, models, "--clip-model", "ViT-L-14"), models["clip"], "ViT-L-14")
-    _fails(capsys, _features(scene, images, models, "--clip-model", "resnet50"), "resnet50")
-    assert _features(scene, images, models) == 0
+    _fails(capsys, run_features(scene, images, models, "--clip-model", "ViT-L-14"), models["clip"], "ViT-L-14")
+    _fails(capsys, run_features(scene, images, models, "--clip-model", "resnet50"), "resnet50")
+    assert run_features(scene, images, models) == 0
     other = write_models(tmp_path / "other")
     sam_bytes = other["sam"].read_bytes()
     (tmp_path / "other" / "sam_vit_tiny.pth").write_bytes(sam_bytes)
@@ -140,10 +135,10 @@ def test_mismatched_encoder(models, tmp_path, capsys):
     state = torch.load(other["sam"], weights_only=True)
     state["mask_decoder.iou_token.weight"] += 1
     torch.save(state, other["sam"])
-    _fails(capsys, _features(scene, images, {**models, "sam": other["sam"]}), store.RECORD, "sam", "--overwrite")
-    assert _features(scene, images, {**models, "sam": other["sam"]}, "--overwrite") == 0
+    _fails(capsys, run_features(scene, images, {**models, "sam": other["sam"]}), store.RECORD, "sam", "--overwrite")
+    assert run_features(scene, images, {**models, "sam": other["sam"]}, "--overwrite") == 0
     (scene / "classes.json").write_text(json.dumps({"classes": []}))
-    _fails(capsys, _features(scene, images, models, "--overwrite", "--classes", "wall"), "classes.json",
+    _fails(capsys, run_features(scene, images, models, "--overwrite", "--classes", "wall"), "classes.json",
            "not written by qr-cl features")
 
 
@@ -151,27 +146,27 @@ def test_bad_images(models, tmp_path, capsys):
     scene, images = drawn_scene(tmp_path / "s", frames=2)
     moved = images / "view_1.png"
     shutil.move(moved, tmp_path / "away.png")
-    _fails(capsys, _features(scene, images, models), "view_1", "no image for camera")
+    _fails(capsys, run_features(scene, images, models), "view_1", "no image for camera")
     (images / "view_1.jpg").write_bytes(b"not a jpeg")
-    _fails(capsys, _features(scene, images, models), images / "view_1.jpg", "not a readable image")
+    _fails(capsys, run_features(scene, images, models), images / "view_1.jpg", "not a readable image")
     (images / "view_1.jpg").unlink()
     from PIL import Image
     Image.new("RGB", (48, 48)).save(images / "view_1.JPG")
-    _fails(capsys, _features(scene, images, models), images / "view_1.JPG", "48x48", "aspect")
+    _fails(capsys, run_features(scene, images, models), images / "view_1.JPG", "48x48", "aspect")
     Image.new("RGB", (32, 24)).save(images / "view_1.JPG")          # half the size, same aspect: fine
-    assert _features(scene, images, models) == 0
+    assert run_features(scene, images, models) == 0
     assert np.load(scene / "language_features" / "view_1_s.npy").shape == (4, 24, 32)
 
 
 def test_bad_options(models, tmp_path, capsys):
     scene, images = drawn_scene(tmp_path / "s", frames=1)
-    _fails(capsys, _features(scene, images, models, "--device", "nodevice"), "--device nodevice")
-    _fails(capsys, _features(scene, tmp_path / "nope", models), tmp_path / "nope", "--images")
-    _fails(capsys, _features(scene, images, models, "--classes", " , "), "no class names")
+    _fails(capsys, run_features(scene, images, models, "--device", "nodevice"), "--device nodevice")
+    _fails(capsys, run_features(scene, tmp_path / "nope", models), tmp_path / "nope", "--images")
+    _fails(capsys, run_features(scene, images, models, "--classes", " , "), "no class names")
     (tmp_path / "w").mkdir()
     bare = write_models(tmp_path / "w")
     (tmp_path / "w" / "bpe_simple_vocab_16e6.txt.gz").unlink()
-    _fails(capsys, _features(scene, images, bare, "--classes", "wall"), "bpe_simple_vocab_16e6.txt.gz", "--clip-vocab")
+    _fails(capsys, run_features(scene, images, bare, "--classes", "wall"), "bpe_simple_vocab_16e6.txt.gz", "--clip-vocab")
 
 
 def test_extra_modules_are_named(monkeypatch, capsys):

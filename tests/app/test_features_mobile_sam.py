@@ -16,7 +16,7 @@ from qr_cl.app.features.random_models import (SAM_ARCHITECTURES, random_clip, ra
                                               save_weights)
 from qr_cl.app.features.sam_model import Sam, SamArchitecture, load_sam, sam_architecture
 from qr_cl.app.features.tiny_vit import MBConv, TinyViTBlock, TinyVitArchitecture
-from tests.app.features_helpers import tiny_clip_arch
+from tests.app.features_helpers import assert_matches_predictor, tiny_clip_arch
 
 #: Names and shapes of the official ``mobile_sam.pt`` (mobile_sam/build_sam.py, build_sam_vit_t).
 OFFICIAL_SHAPES = {
@@ -176,16 +176,7 @@ def test_matches_official_mobile_sam(mobile_sam_state, tmp_path):
     ref.eval()
     torch.save(state, tmp_path / "mobile_sam.pt")
     ours = load_sam(tmp_path / "mobile_sam.pt")
-    predictor = SamPredictor(ref)
-    predictor.set_image(IMAGE)
-    coords = torch.as_tensor(predictor.transform.apply_coords(POINTS, IMAGE.shape[:2]), dtype=torch.float32)
-    logits, iou, _ = predictor.predict_torch(coords[:, None], torch.ones(3, 1), multimask_output=True,
-                                             return_logits=True)
-    view = ours.embed(IMAGE)
-    torch.testing.assert_close(view.embedding, predictor.features, atol=1e-4, rtol=1e-4)
-    got_logits, got_iou = view.predict(POINTS)
-    torch.testing.assert_close(got_iou, iou, atol=1e-4, rtol=1e-4)
-    torch.testing.assert_close(got_logits, logits, atol=1e-3, rtol=1e-3)
+    assert_matches_predictor(SamPredictor, ref, ours, IMAGE, POINTS)
 
 
 def _fails(path, match: str) -> str:

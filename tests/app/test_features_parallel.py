@@ -19,7 +19,7 @@ import pytest
 from qr_cl.app import cli
 from qr_cl.app.features import store, workers
 from qr_cl.app.features.shards import Shard, shard_spec
-from tests.app.features_helpers import FAST, drawn_scene, write_models
+from tests.app.features_helpers import drawn_scene, run_features, write_models
 
 FRAMES = 4
 STEMS = [f"view_{i}" for i in range(FRAMES)]
@@ -30,11 +30,6 @@ def models(tmp_path_factory):
     return write_models(tmp_path_factory.mktemp("weights"))
 
 
-def _features(scene, images, models, *extra):
-    return cli.main(["features", str(scene), "--images", str(images), "--clip-weights", str(models["clip"]),
-                     "--sam-weights", str(models["sam"]), "--threads", "1", *FAST, *extra])
-
-
 def _tree(folder):
     return {p.name: p.read_bytes() for p in sorted(folder.iterdir())}
 
@@ -43,7 +38,7 @@ def _tree(folder):
 def reference(models, tmp_path_factory):
     """The files of one unsharded run in this process (--workers 1) on a scene of FRAMES frames."""
     scene, images = drawn_scene(tmp_path_factory.mktemp("reference"), frames=FRAMES)
-    assert _features(scene, images, models) == 0
+    assert run_features(scene, images, models) == 0
     return _tree(scene / "language_features")
 
 
@@ -84,7 +79,7 @@ def test_workers_write_the_same_bytes(models, reference, tmp_path, monkeypatch, 
         setups.append((setup, count))
         real_init(self, setup, count)
     monkeypatch.setattr(workers.WorkerPool, "__init__", spy)
-    assert _features(scene, images, models, "--workers", "2") == 0
+    assert run_features(scene, images, models, "--workers", "2") == 0
     assert [(s.threads, count) for s, count in setups] == [(1, 2)]            # --threads 1 in all: 1 each
     assert f"{FRAMES} frames written" in capsys.readouterr().out
     assert _tree(scene / "language_features") == reference
@@ -101,21 +96,21 @@ def test_shards_write_every_frame_exactly_once(models, reference, tmp_path, monk
     by_shard = {}
     for index in (1, 2, 3):
         before = len(written)
-        assert _features(scene, images, models, "--shard", f"{index}/3") == 0
+        assert run_features(scene, images, models, "--shard", f"{index}/3") == 0
         by_shard[index] = written[before:]
         out = capsys.readouterr().out
         assert f"shard {index}/3: {len(by_shard[index])} of {FRAMES} frames" in out, out
     assert by_shard == {1: ["view_0", "view_3"], 2: ["view_1"], 3: ["view_2"]}
     assert Counter(written) == Counter(STEMS)
     assert _tree(scene / "language_features") == reference
-    assert _features(scene, images, models, "--shard", "2/3") == 0                 # done: nothing again
+    assert run_features(scene, images, models, "--shard", "2/3") == 0                 # done: nothing again
     assert len(written) == FRAMES and "1 of 1 frames already written" in capsys.readouterr().out
 
 
 def test_a_shard_with_other_settings_refuses(models, tmp_path, monkeypatch, capsys):
     scene, images = drawn_scene(tmp_path, frames=2)
-    assert _features(scene, images, models, "--shard", "1/2") == 0
-    _fails(capsys, _features(scene, images, models, "--shard", "2/2", "--points-per-side", "3"),
+    assert run_features(scene, images, models, "--shard", "1/2") == 0
+    _fails(capsys, run_features(scene, images, models, "--shard", "2/2", "--points-per-side", "3"),
            store.RECORD, "1 frames were made with other masks", "--overwrite")
     assert not (scene / "language_features" / "view_1_s.npy").exists()
 
@@ -131,7 +126,7 @@ def test_a_run_stops_when_another_replaces_the_record(models, tmp_path, monkeypa
         mixed["masks"]["points_per_side"] = 3
         store.write_atomic(record, lambda fh: fh.write(json.dumps(mixed).encode()))
     monkeypatch.setattr(store, "write_frame", other_shard_starts)
-    _fails(capsys, _features(scene, images, models), record, "another run wrote other masks", "--overwrite")
+    _fails(capsys, run_features(scene, images, models), record, "another run wrote other masks", "--overwrite")
     assert not (scene / "language_features" / "view_1_s.npy").exists()       # stopped after one frame
 
 
@@ -186,7 +181,7 @@ def test_resume_redoes_exactly_the_damaged_frames(models, reference, tmp_path, m
     assert [store.frame_done(lang, stem) for stem in STEMS] == [False, False, False, True]
 
     written = _written(monkeypatch)
-    assert _features(scene, images, models) == 0
+    assert run_features(scene, images, models) == 0
     assert sorted(written) == ["view_0", "view_1", "view_2"]
     assert fresh.exists()
     fresh.unlink()
@@ -209,7 +204,7 @@ def test_a_killed_worker_stops_the_run(models, reference, tmp_path, monkeypatch,
                 killed.append((stem, store.frame_done(lang, stem)))
                 os.kill(pid, signal.SIGKILL)
     monkeypatch.setattr(workers.WorkerPool, "frames", kill_a_busy_worker)
-    _fails(capsys, _features(scene, images, models, "--workers", "2"), "a worker process died on frame",
+    _fails(capsys, run_features(scene, images, models, "--workers", "2"), "a worker process died on frame",
            "SIGKILL", "run again")
     monkeypatch.undo()
     done = _only_whole_frames(lang)
@@ -217,7 +212,7 @@ def test_a_killed_worker_stops_the_run(models, reference, tmp_path, monkeypatch,
     assert 1 <= len(done) < FRAMES and (stem in done) == finished
 
     written = _written(monkeypatch)
-    assert _features(scene, images, models) == 0
+    assert run_features(scene, images, models) == 0
     assert sorted(written) == sorted(set(STEMS) - set(done))
     assert _tree(lang) == reference
 
@@ -230,17 +225,17 @@ def test_ctrl_c_stops_the_workers(models, reference, tmp_path, monkeypatch):
         raise KeyboardInterrupt
     monkeypatch.setattr(store, "check_record_kept", interrupt)         # Ctrl-C once a frame is written
     with pytest.raises(KeyboardInterrupt):
-        _features(scene, images, models, "--workers", "2")
+        run_features(scene, images, models, "--workers", "2")
     monkeypatch.undo()
     assert 1 <= len(_only_whole_frames(lang)) < FRAMES
-    assert _features(scene, images, models) == 0
+    assert run_features(scene, images, models) == 0
     assert _tree(lang) == reference
 
 
 def test_a_worker_error_stops_the_run(models, tmp_path, capsys):
     scene, images = drawn_scene(tmp_path, frames=FRAMES)
     (images / "view_1.png").write_bytes(b"not a png")
-    _fails(capsys, _features(scene, images, models, "--workers", "2"), images / "view_1.png", "not a readable image")
+    _fails(capsys, run_features(scene, images, models, "--workers", "2"), images / "view_1.png", "not a readable image")
     assert "view_1" not in _only_whole_frames(scene / "language_features")
 
 

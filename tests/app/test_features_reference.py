@@ -11,6 +11,7 @@ import torch
 
 from qr_cl.app.features.clip_model import load_clip
 from qr_cl.app.features.sam_model import load_sam
+from tests.app.features_helpers import assert_matches_predictor
 
 
 def test_clip_matches_open_clip(tmp_path):
@@ -50,13 +51,4 @@ def test_sam_matches_segment_anything(tmp_path):
     ours = load_sam(tmp_path / "sam_vit_tiny.pth")
     image = (np.random.default_rng(0).random((48, 64, 3)) * 255).astype(np.uint8)
     points = np.array([[10.0, 20.0], [40.0, 8.0], [63.0, 47.0]])
-    predictor = SamPredictor(ref)
-    predictor.set_image(image)
-    coords = torch.as_tensor(predictor.transform.apply_coords(points, image.shape[:2]), dtype=torch.float32)
-    logits, iou, _ = predictor.predict_torch(coords[:, None], torch.ones(3, 1), multimask_output=True,
-                                             return_logits=True)
-    view = ours.embed(image)
-    torch.testing.assert_close(view.embedding, predictor.features, atol=1e-4, rtol=1e-4)
-    got_logits, got_iou = view.predict(points)
-    torch.testing.assert_close(got_iou, iou, atol=1e-4, rtol=1e-4)
-    torch.testing.assert_close(got_logits, logits, atol=1e-3, rtol=1e-3)
+    assert_matches_predictor(SamPredictor, ref, ours, image, points)

@@ -126,7 +126,8 @@ def test_compact_loss_equals_the_full_table_render(scene):
     torch.testing.assert_close(compact, reference, rtol=1e-6, atol=0)
     compact.backward()
     reference.backward()
-    torch.testing.assert_close(table.grad, full.grad[torch.from_numpy(rays.rows)], rtol=1e-5, atol=1e-8)
+    expected = full.grad[torch.from_numpy(rays.rows)]          # float32 sums in another order: tolerance
+    torch.testing.assert_close(table.grad, expected, rtol=1e-5, atol=1e-5 * float(expected.abs().max()))  # of its scale
     outside = np.setdiff1d(np.arange(len(data.gaussians)), rays.rows)
     assert not full.grad[torch.from_numpy(outside)].any()
     value, n = scene_loss(data, full.detach(), cfg, np.random.default_rng(7))
