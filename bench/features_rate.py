@@ -12,6 +12,8 @@ filters drop is not what real weights would drop. Cases:
   every mask), ``--threads`` torch threads, both installs (``vit_h`` of the base only with
   ``--base-vit-h``: it takes the longest);
 - ``fast``: MobileSAM with ``--crop-layers 0`` (this checkout only; the base cannot load it);
+- ``clip``: CLIP's image encoder alone, seconds per mask crop (random weights make few masks, a
+  real frame has one to a few hundred distinct ones);
 - ``workers``: ``qr-cl features`` itself on a scene of ``--frames`` copies of the image with the
   fast profile, ``--workers 1`` (all threads) against ``--workers 2``.
 
@@ -82,9 +84,34 @@ def _wrap_stages(totals: dict[str, float]) -> None:
         setattr(owner, name, timed)
 
 
+def measure_clip(config: dict) -> dict:
+    """Seconds per mask crop of CLIP's image encoder, ``config['crops']`` crops 32 at a time (the
+    command's default batch), the median of 3 runs after a warm-up."""
+    import statistics
+
+    import torch
+
+    from qr_cl.app.features.clip_model import load_clip
+    from qr_cl.app.features.frames import encode_crops
+
+    torch.set_num_threads(config["threads"])
+    clip = load_clip(config["clip"])
+    crops = torch.rand(config["crops"], 3, clip.arch.image_size, clip.arch.image_size,
+                       generator=torch.Generator().manual_seed(0))
+    encode_crops(clip, crops[:32], 32)
+    times = []
+    for _ in range(3):
+        start = time.perf_counter()
+        encode_crops(clip, crops, 32)
+        times.append(time.perf_counter() - start)
+    return {"seconds_per_crop": statistics.median(times) / len(crops), "crops": len(crops)}
+
+
 def measure_frame(config: dict) -> dict:
     """One frame of ``config`` in this process's install: seconds, stages, mask counts; the
     outputs saved to ``config['save']``."""
+    if config.get("case") == "clip":
+        return measure_clip(config)
     import torch
 
     from qr_cl.app.features import command, frames
@@ -193,7 +220,7 @@ def main() -> None:
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--cases", nargs="+", default=["vit_b", "fast", "workers", "vit_h"],
-                        choices=["vit_b", "vit_h", "fast", "workers"])
+                        choices=["vit_b", "vit_h", "fast", "workers", "clip"])
     parser.add_argument("--base-vit-h", action="store_true", help="also time the base's ViT-H frame")
     parser.add_argument("--frames", type=int, default=4, help="frames of the workers case")
     parser.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data")
@@ -210,17 +237,17 @@ def main() -> None:
         np.save(tmp / "image.npy", image)
         models = write_models(tmp, "vit_h" in args.cases)
         for case in [c for c in args.cases if c != "workers"]:
-            sam = models["fast" if case == "fast" else case]
-            config = {"sam": str(sam), "clip": str(models["clip"]), "image": str(tmp / "image.npy"),
-                      "threads": args.threads, "crop_layers": 0 if case == "fast" else 1}
+            sam = models["fast" if case in ("fast", "clip") else case]
+            config = {"case": case, "sam": str(sam), "clip": str(models["clip"]), "image": str(tmp / "image.npy"),
+                      "threads": args.threads, "crop_layers": 0 if case == "fast" else 1, "crops": 64}
             entry = {}
             for install in runs_of:
                 if install is not THIS and (case == "fast" or (case == "vit_h" and not args.base_vit_h)):
                     continue
                 entry[install.label] = run_frame(install, {**config, "save": str(tmp / f"{case}-{install.label}.npz")},
                                                  str(tmp))
-                print(f"{case} {install.label}: {entry[install.label]['seconds']:.1f} s", flush=True)
-            if "base" in entry:
+                print(f"{case} {install.label}: {entry[install.label]}", flush=True)
+            if "base" in entry and case != "clip":
                 entry["outputs"] = compare(tmp / f"{case}-base.npz", tmp / f"{case}-this.npz")
             results["cases"][case] = entry
             write_report(args.out, results)                                 # each case as it ends
@@ -236,10 +263,15 @@ def write_report(out: Path, results: dict) -> None:
     lines = [f"# qr-cl features: seconds per 640x480 frame ({results['threads']} torch threads, CPU)", "",
              f"Machine: {results['machine']}, {results['cores']} cores; image: {results['image']}; base: "
              f"{results['base'] or 'none'}. Random weights of the real architectures (masks are arbitrary). "
-             "Load: the 1-minute load average before and after each run. Made by bench/features_rate.py.", "",
-             "| case | install | seconds per frame | masks per level | load | per stage (s) |", "| --- | --- | ---: | --- | --- | --- |"]
+             "Load: the 1-minute load average before and after each run. Made by bench/features_rate.py.", ""]
+    if set(results["cases"]) - {"workers", "clip"}:
+        lines += ["| case | install | seconds per frame | masks per level | load | per stage (s) |",
+                  "| --- | --- | ---: | --- | --- | --- |"]
     for case, entry in results["cases"].items():
-        if case == "workers":
+        if case == "clip":
+            lines += ["", "CLIP ViT-B/16 image encoder, 32 crops a batch: " + ", ".join(
+                f"{label} {e['seconds_per_crop']:.3f} s per mask crop" for label, e in entry.items()), ""]
+        if case in ("workers", "clip"):
             continue
         for label in ("base", "this"):
             if label in entry:

@@ -7,7 +7,9 @@ decoder is a two-way transformer of two blocks (tokens' self-attention, tokens -
 image -> tokens cross-attention at half width, a ReLU MLP) and a last tokens -> image attention,
 then the image is upscaled 4x by two transposed convolutions and each of the four mask tokens
 becomes, through its own 3-layer MLP, the weights of a dot product with every upscaled pixel. An
-IoU token's MLP predicts each mask's quality.
+IoU token's MLP predicts each mask's quality. :class:`MaskDecoder` is the decoder as published,
+one prompt's maths at a time: the readable reference of :mod:`.point_decoder`, which decodes
+``qr-cl features``' prompts.
 """
 from __future__ import annotations
 

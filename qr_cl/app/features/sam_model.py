@@ -5,10 +5,12 @@ prediction on one image.
 :class:`Sam` holds ``image_encoder``, ``prompt_encoder`` and ``mask_decoder`` as the checkpoints
 name them. :class:`SamImage` is one image's embedding: the image is resized so its longer side is
 1024 px (bilinear, PIL), normalised by SAM's pixel mean and deviation, zero-padded to 1024x1024
-and encoded once; :meth:`SamImage.predict` then decodes batches of single-point prompts into the
-three multimask outputs, as logits at the image's own size (the 256x256 logits upsampled to
-1024, cropped to the resized image and upsampled to the original size, both bilinear; done as one
-separable linear map per axis, the same numbers as the two resizes).
+and encoded once. Batches of single-point prompts are then decoded into the three multimask
+outputs (:meth:`SamImage.decode`, :meth:`SamImage.low_masks`: SAM's decoder rearranged for many
+prompts, :mod:`.point_decoder`) and upsampled to the image's own size (:meth:`SamImage.upsample`:
+the 256x256 logits upsampled to 1024, cropped to the resized image and upsampled to the original
+size, both bilinear, as a few taps per row and column, :mod:`.mask_upsampling`);
+:meth:`SamImage.predict` does all three.
 """
 from __future__ import annotations
 
