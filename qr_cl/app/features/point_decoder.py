@@ -109,8 +109,8 @@ def _apply(update: MapUpdate, x: torch.Tensor, norm: torch.nn.LayerNorm) -> torc
 @dataclass
 class PromptTokens:
     """What the transformer leaves for the masks of B prompts: ``hs`` [B, 4, C] the output tokens
-    of :data:`READ_TOKENS`,
-    ``first``, ``second`` the two blocks' updates of the image map (their statistics included)."""
+    of :data:`READ_TOKENS`; ``first``, ``second`` the two blocks' updates of the image map (their
+    norms' statistics included)."""
 
     hs: torch.Tensor
     first: MapUpdate
