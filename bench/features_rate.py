@@ -23,8 +23,8 @@ one stage (its ``predict``). The outputs of the two installs' ``vit_b`` frames a
 mask ids per level, cosine of the feature rows). The machine's load (1-minute load average)
 is read before and after each run. Writes ``report.md`` and ``results.json`` into ``--out``::
 
-    git worktree add /tmp/qr-cl-base <release before>
-    python bench/features_rate.py --base /tmp/qr-cl-base --out bench/reports/features-rate-<machine>
+    git worktree add ../qr-cl-base <release before>
+    python bench/features_rate.py --base ../qr-cl-base --out bench/reports/features-rate-<machine>
 """
 from __future__ import annotations
 
@@ -214,6 +214,14 @@ def compare(base: Path, this: Path) -> dict:
     return {"ids_equal": same, "rows": [len(fa), len(fb)], "cosine_min": float(cos.min()) if len(cos) else 1.0}
 
 
+def describe_base(base: str | None) -> str | None:
+    """The base as the report names it: a checkout by its commit, an interpreter by its path."""
+    if base is None or not Path(base).is_dir():
+        return base
+    head = subprocess.run(["git", "-C", base, "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
+    return f"checkout of {head.stdout.strip()}" if head.returncode == 0 else "a checkout"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     add_base_option(parser, required=False)
@@ -231,7 +239,7 @@ def main() -> None:
         return
     image, source = test_image(args.data)
     results = {"threads": args.threads, "image": source, "size": [WIDTH, HEIGHT], "cores": os.cpu_count(),
-               "machine": platform.processor() or platform.machine(), "base": args.base, "cases": {}}
+               "machine": platform.processor() or platform.machine(), "base": describe_base(args.base), "cases": {}}
     with tempfile.TemporaryDirectory(prefix="qr-cl-features-rate-") as tmp, installs(args.base) as runs_of:
         tmp = Path(tmp)
         np.save(tmp / "image.npy", image)

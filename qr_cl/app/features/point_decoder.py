@@ -146,6 +146,9 @@ class PointDecoder:
             self.conv_b1 = first.norm4.bias @ self.conv_w2
             self.conv_b2 = second.norm4.bias @ w + conv.bias.repeat(4)
             self.keys_conv = self.keys @ self.conv_w1                                 # X0 W'' [1, N, 256]
+            conv2 = decoder.output_upscaling[3]
+            self.up2_w = conv2.weight.permute(0, 2, 3, 1).flatten(1)                # [64, 2*2*32] channels last
+            self.up2_b = conv2.bias.repeat(4)
 
     def transform(self, sparse: torch.Tensor) -> PromptTokens:
         """The two-way transformer (:class:`~.sam_decoder.TwoWayTransformer`) of the decoder's
@@ -199,7 +202,7 @@ class PointDecoder:
         dec = self.decoder
         g = self.grid
         rows, cols = rows or g, cols or g
-        _, norm, _, conv2, _ = dec.output_upscaling
+        norm = dec.output_upscaling[1]
         b = len(tokens.hs)
 
         def window(x: torch.Tensor) -> torch.Tensor:                                 # [B, N, k] -> its window
@@ -215,8 +218,6 @@ class PointDecoder:
             first, first_values = augmented(tokens.first, self.conv_w1)
             second, second_values = augmented(tokens.second, self.conv_w2)
             keys, rstd1, rstd2 = window(self.keys_conv), window(tokens.first.rstd), window(tokens.second.rstd)
-            w2 = conv2.weight.permute(0, 2, 3, 1).flatten(1)                          # [64, 2*2*32]
-            bias2 = conv2.bias.repeat(4)
             low = []
             for t in range(0, keys.shape[1], TOKEN_TILE):                             # per token: tiles stay in cache
                 part = slice(t, t + TOKEN_TILE)
@@ -224,7 +225,7 @@ class PointDecoder:
                 up = torch.addcmul(self.conv_b1, up, rstd1[:, part]).baddbmm_(second[:, part], second_values)
                 up = torch.addcmul(self.conv_b2, up, rstd2[:, part]).unflatten(-1, (4, -1))   # [B, tile, 4, 64]
                 up = F.gelu(F.layer_norm(up, up.shape[-1:], norm.weight, norm.bias, norm.eps))
-                up = F.gelu((up @ w2).add_(bias2))                                    # [B, tile, 4, 4*32]
+                up = F.gelu((up @ self.up2_w).add_(self.up2_b))         # [B, tile, 4, 4*32]
                 low.append(up.flatten(1, 2).unflatten(-1, (4, -1)).flatten(1, 2) @ hyper)   # [B, tile*16, 3]
             low = torch.cat(low, 1)
         low = low.view(b, rows, cols, 2, 2, 2, 2, len(MULTIMASK))                     # i, j, a, c, a2, c2
