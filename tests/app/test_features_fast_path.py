@@ -28,9 +28,22 @@ def _decoder_inputs(sam, prompts: int, seed: int):
     return image, pe, dense, sparse
 
 
+def _with_random_norms_and_biases(sam, seed: int):
+    """``sam`` with its decoder's LayerNorm gains and biases and its linear biases random (the
+    random models have gains 1 and biases 0, which would hide their terms in the decoder's maths)."""
+    gen = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for module in sam.mask_decoder.modules():
+            if isinstance(module, torch.nn.LayerNorm):
+                module.weight.copy_(0.5 + torch.rand(module.weight.shape, generator=gen))
+            if isinstance(module, (torch.nn.LayerNorm, torch.nn.Linear)) and module.bias is not None:
+                module.bias.copy_(0.3 * torch.randn(module.bias.shape, generator=gen))
+    return sam
+
+
 @pytest.mark.parametrize("seed", [0, 1])
 def test_point_decoder_is_the_published_decoder(seed):
-    sam = random_sam(TINY_SAM, seed=seed, confident=False)
+    sam = _with_random_norms_and_biases(random_sam(TINY_SAM, seed=seed, confident=False), seed)
     image, pe, dense, sparse = _decoder_inputs(sam, 5, seed)
     with torch.no_grad():
         twin = copy.deepcopy(sam.mask_decoder).double()                     # the float64 twin

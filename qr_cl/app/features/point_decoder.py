@@ -3,22 +3,26 @@
 rearranged so that the work on the 64x64 image tokens is done once per image where it can be and
 is otherwise pushed onto the 7 prompt tokens.
 
-With ``X`` an [N, C] map of image tokens (N = 4096, C = 256) and ``t`` the 7 tokens of one prompt,
-each attention head h (8 heads of width d) of the decoder's cross-attentions becomes:
+With ``X0`` the [N, C] map of image tokens (N = 4096, C = 256), 7 tokens per prompt and
+cross-attentions of 8 heads of width d = 16:
 
-- tokens -> image: the logits ``(t Wq_h + bq_h)(X Wk_h + bk_h)^T`` equal ``(t Wq_h Wk_h^T) X^T``
-  plus a constant per token, which the softmax ignores; the values ``P (X Wv_h + bv_h)`` equal
-  ``(P X) Wv_h + bv_h`` (softmax rows sum to 1): [7, C] x [C, N] products instead of projecting
-  the whole map. In the first block ``X`` is the same for every prompt: its keys and values are
-  projected once per image.
-- image -> tokens: the logits ``(X Wq_h + bq_h) K_h^T`` equal ``X (Wq_h K_h^T) + bq_h K_h^T``, and
-  the output projection folds into the token values (``V_h Wo_h``, its bias spread over the
-  heads, whose weights sum to 1 each): the update of the map is ``P^T V``, [N, 8*7] x [8*7, C].
-  In the first block ``X Wq_h`` is once per image.
+- Block one: its tokens -> image attention reads the image map before any prompt changed it, so
+  its keys, values and image queries are projected once per image.
+- After block one's image -> tokens update the map is ``LN1(X0 + a1^T V1)``: a1 [8*7, N] the
+  attention weights (each head's softmax over its 7 tokens), V1 [8*7, C] the token values with the
+  output projection folded in. Written as ``rstd1 * (Y + a1^T R1) + b1`` (Y = (X0 - mean) * g1,
+  the same for every prompt; R1 the centred values times g1), a projection ``W`` of it per head is
+  ``rstd1 * (Y W + a1^T (R1 W)) + b1 W``: ``Y W`` once per image, then a [N, 56] x [56, d] product
+  per prompt; attention logits and pooled values reduce further to [56, 56] x [56, N] products
+  (:class:`LowRankMap`). After block two the map is ``LN2(X1 + a2^T V2)``, one more such term.
+- The norms' statistics come from the same factors: the squared norm of ``(X0 - mean) + a1^T Vc``
+  is ``|X0 - mean|^2 + 2 a1 . ((X0 - mean) . V1) + a1 . (Vc Vc^T a1)``, the middle products per
+  head through ``(X0 - mean) Wo`` made once per image (V1 = values Wo + bias); block two's the same
+  with three [56, 56] forms (:meth:`PointDecoder._second_norm`). No [N, C] map is ever formed.
 - The first upscaling convolution (2x2, stride 2: a per-token [C, 4*64] map) is linear, and the
-  map it reads is ``LN2(LN1(X0 + P1^T V1) + P2^T V2)``. A LayerNorm is ``(x - mean) * rstd``
+  map it reads is ``LN2(LN1(X0 + a1^T V1) + a2^T V2)``. A LayerNorm is ``(x - mean) * rstd``
   per token, then a gain and bias per channel, so the convolution of the final map is
-  ``rstd2 * (rstd1 * ((X0 W'' + P1^T V1 W'') - mean1 c1) + b1 W' + P2^T V2 W' - mean2 c2) + b2 W + bias``
+  ``rstd2 * (rstd1 * ((X0 W'' + a1^T V1 W'') - mean1 c1) + b1 W' + a2^T V2 W' - mean2 c2) + b2 W + bias``
   (``W' = diag(g2) W``, ``W'' = diag(g1) W'``, ``c`` their column sums): ``X0 W''`` once per
   image, then two [N, 8*7+1] x [8*7+1, 256] products per prompt instead of [N, C] x [C, 256].
 - The second convolution is per pixel too ([64] -> [2*2*32] channels last); the masks stay in
@@ -52,40 +56,106 @@ def _split_heads(x: torch.Tensor, heads: int) -> torch.Tensor:
     return x.unflatten(-1, (heads, -1)).transpose(-3, -2)
 
 
-def _head_weights(linear: torch.nn.Linear, heads: int) -> torch.Tensor:
-    """[heads, d, C_in]: ``linear``'s weight rows per head."""
-    return linear.weight.unflatten(0, (heads, -1))
+def _head_scores(q: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+    """[h, B, T, N]: per head the products ``q`` [B, h, T, d] x ``rows`` [h, N, d]^T, as h products
+    of all B*T queries (``rows`` read once per head, not once per prompt), heads first."""
+    b, heads, t, d = q.shape
+    return (q.transpose(0, 1).reshape(heads, b * t, d) @ rows.transpose(1, 2)).view(heads, b, t, -1)
 
 
-def _layer_norm(norm: torch.nn.LayerNorm, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """(``norm(x)``, mean [..., 1], rstd [..., 1]) of ``x`` [..., C]."""
-    return torch.native_layer_norm(x, norm.normalized_shape, norm.weight, norm.bias, norm.eps)
+def _add_heads(out: torch.Tensor, scores: torch.Tensor, scale: torch.Tensor | None = None) -> torch.Tensor:
+    """``out`` [B, h*T, N] plus ``scores`` [h, B, T, N] (:func:`_head_scores`), times ``scale``
+    [B, 1, N] if given; in place."""
+    view = out.view(len(out), scores.shape[0], scores.shape[2], -1)
+    heads = scores.permute(1, 0, 2, 3)
+    if scale is None:
+        view.add_(heads)
+    else:
+        view.addcmul_(heads, scale[:, :, None])
+    return out
 
 
-def _tokens_to_image(attn: TokenAttention, queries: torch.Tensor, image_pe: torch.Tensor,
-                     image: torch.Tensor) -> torch.Tensor:
-    """[B, T, C]: ``attn(queries, image_pe, image)`` for ``queries`` [B, T, C], keys from
-    ``image_pe`` and values from ``image`` [B, N, C], projections on the tokens' side."""
-    heads = attn.heads
-    q = _split_heads(attn.q_proj(queries), heads)                                    # [B, h, T, d]
-    folded = (q @ _head_weights(attn.k_proj, heads)).flatten(1, 2)                   # [B, h*T, C]
-    scale = 1 / math.sqrt(q.shape[-1])
-    weights = torch.softmax((folded @ image_pe.transpose(1, 2)) * scale, -1)         # [B, h*T, N]
-    pooled = (weights @ image).unflatten(1, (heads, -1))                             # [B, h, T, C]
-    values = pooled @ _head_weights(attn.v_proj, heads).transpose(1, 2) + attn.v_proj.bias.view(heads, 1, -1)
-    return attn.out_proj(values.transpose(1, 2).flatten(2))
+def _dot(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """[B, 1, N]: sum over k of ``x`` [B, k, N] times ``y`` [B, k, N] (``y`` is overwritten)."""
+    return y.mul_(x).sum(1, keepdim=True)
+
+
+@dataclass(frozen=True)
+class Projected:
+    """One attention projection (``linear``, its weight [h*d, C]) of the maps of a
+    :class:`LowRankMap`, per head: ``image`` [h, N, d] the projection of its shared rows (no
+    bias), ``const`` [h, N or 1, d] that of what is added to the map (positions, the norm's bias)
+    with the projection's bias."""
+
+    weight: torch.Tensor
+    image: torch.Tensor
+    const: torch.Tensor
+
+    @staticmethod
+    def of(linear: torch.nn.Linear, heads: int, image: torch.Tensor, const: torch.Tensor) -> "Projected":
+        """The projection by ``linear`` of ``image`` [N, C] and ``const`` [N or 1, C]."""
+        return Projected(linear.weight, _split_heads(image @ linear.weight.T, heads),
+                         _split_heads(linear(const), heads))
+
+    def rows(self, rows: torch.Tensor) -> torch.Tensor:
+        """[..., h, k, d]: ``rows`` [..., k, C] projected (no bias)."""
+        return _split_heads(rows @ self.weight.T, self.image.shape[0])
+
+
+@dataclass(frozen=True)
+class LowRankMap:
+    """B prompts' image maps after a LayerNorm (before its bias), never formed:
+    ``rstd * (inner + coeffs^T rows + offset)``, ``inner`` another such map or, when None, the
+    [N, C] rows ``Y`` that all prompts share (their projections are a :class:`Projected`'s).
+    ``rstd`` [B, 1, N] per token, ``coeffs`` [B, k, N] and ``rows`` [B, k, C] (k = 8*7: an
+    update's attention weights and values), ``offset`` [C] or None. Attention logits and pooled
+    values of a projection cost [N, k] x [k, h*T] products instead of [N, C] ones."""
+
+    rstd: torch.Tensor
+    coeffs: torch.Tensor
+    rows: torch.Tensor
+    inner: "LowRankMap | None" = None
+    offset: torch.Tensor | None = None
+
+    def logits(self, q: torch.Tensor, proj: Projected) -> torch.Tensor:
+        """[B, h*T, N]: ``q`` [B, h, T, d] against the maps projected by ``proj``, per head."""
+        folded = (proj.rows(self.rows) @ q.transpose(2, 3)).transpose(2, 3).flatten(1, 2)   # [B, h*T, k]
+        out = folded @ self.coeffs
+        if self.inner is None:
+            _add_heads(out, _head_scores(q, proj.image))
+        else:
+            out.add_(self.inner.logits(q, proj))
+        if self.offset is not None:
+            out.add_((q @ proj.rows(self.offset[None]).transpose(1, 2)).flatten(1, 2))
+        return out.mul_(self.rstd)
+
+    def pooled(self, weights: torch.Tensor, proj: Projected) -> torch.Tensor:
+        """[B, h, T, d]: the maps projected by ``proj`` pooled by ``weights`` [B, h*T, N]."""
+        b, heads = len(weights), proj.image.shape[0]
+        scaled = weights * self.rstd
+        out = (scaled @ self.coeffs.transpose(1, 2)).unflatten(1, (heads, -1)) @ proj.rows(self.rows)
+        if self.inner is None:
+            image = scaled.view(b, heads, -1, scaled.shape[-1]).transpose(0, 1).flatten(1, 2) @ proj.image
+            out.add_(image.view(heads, b, -1, image.shape[-1]).transpose(0, 1))
+        else:
+            out.add_(self.inner.pooled(scaled, proj))
+        if self.offset is not None:
+            out.addcmul_(scaled.sum(-1).unflatten(1, (heads, -1))[..., None], proj.rows(self.offset[None]))
+        return out
 
 
 @dataclass
 class MapUpdate:
     """One image -> tokens update of the image map, ``x + weights^T @ values``: ``weights``
     [B, h*T, N] (each head's softmax over its T tokens), ``values`` [B, h*T, C] (output projection
-    and bias folded in); ``mean``, ``rstd`` [B, N, 1] of the LayerNorm that follows."""
+    and bias folded in); ``mean``, ``rstd`` [B, N, 1] of the LayerNorm that follows;
+    ``heads`` [B, h, T, d] the values before the output projection."""
 
     weights: torch.Tensor
     values: torch.Tensor
     mean: torch.Tensor | None = None
     rstd: torch.Tensor | None = None
+    heads: torch.Tensor | None = None
 
 
 def _image_update(attn: TokenAttention, logits: torch.Tensor, tokens: torch.Tensor) -> MapUpdate:
@@ -96,14 +166,39 @@ def _image_update(attn: TokenAttention, logits: torch.Tensor, tokens: torch.Tens
     scale = 1 / math.sqrt(attn.q_proj.out_features // heads)
     weights = torch.softmax(logits * scale, 2).flatten(1, 2)                         # [B, h*T, N]
     out = attn.out_proj.weight.T.unflatten(0, (heads, -1))                           # [h, d, C]
-    values = _split_heads(attn.v_proj(tokens), heads) @ out + attn.out_proj.bias / heads
-    return MapUpdate(weights, values.flatten(1, 2))
+    per_head = _split_heads(attn.v_proj(tokens), heads)
+    values = per_head @ out + attn.out_proj.bias / heads
+    return MapUpdate(weights, values.flatten(1, 2), heads=per_head)
 
 
-def _apply(update: MapUpdate, x: torch.Tensor, norm: torch.nn.LayerNorm) -> torch.Tensor:
-    """``norm(x + update)`` for ``x`` [B or 1, N, C]; keeps the norm's statistics in ``update``."""
-    y, update.mean, update.rstd = _layer_norm(norm, torch.baddbmm(x, update.weights.transpose(1, 2), update.values))
-    return y
+def _rstd(squares: torch.Tensor, norm: torch.nn.LayerNorm) -> torch.Tensor:
+    """[B, 1, N]: ``norm``'s 1 / std of tokens whose centred squares sum to ``squares``."""
+    return torch.rsqrt(squares.clamp_min(0) / norm.normalized_shape[0] + norm.eps)
+
+
+def _gram(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """[B, k, l]: the dot products of the rows of ``x`` [B, k, C] and ``y`` [B, l, C]."""
+    return x @ y.transpose(1, 2)
+
+
+def _centred(x: torch.Tensor) -> torch.Tensor:
+    """``x`` [..., C] less its mean over C."""
+    return x - x.mean(-1, keepdim=True)
+
+
+def _map_logits(image: LowRankMap, q: torch.Tensor, proj: Projected) -> torch.Tensor:
+    """[B, h*T, N]: ``q`` [B, h, T, d] against the maps ``image`` projected by ``proj``, what is
+    added to them included."""
+    return _add_heads(image.logits(q, proj), _head_scores(q, proj.const))
+
+
+def _attend(attn: TokenAttention, queries: torch.Tensor, image: LowRankMap, keys: Projected,
+            values: Projected) -> torch.Tensor:
+    """[B, T, C]: ``attn`` from ``queries`` [B, T, C] to the maps ``image``, whose keys (with
+    positions) and values project as ``keys`` and ``values``."""
+    q = _split_heads(attn.q_proj(queries), attn.heads)                               # [B, h, T, d]
+    weights = torch.softmax(_map_logits(image, q, keys).mul_(1 / math.sqrt(q.shape[-1])), -1)
+    return attn.out_proj(image.pooled(weights, values).add_(values.const).transpose(1, 2).flatten(2))
 
 
 @dataclass
@@ -131,24 +226,89 @@ class PointDecoder:
         self.decoder = decoder
         self.grid = image.shape[-1]
         first, second = decoder.transformer.layers
+        final = decoder.transformer.final_attn_token_to_image
         conv = decoder.output_upscaling[0]
         with torch.no_grad():
-            self.keys = (image + dense).flatten(2).transpose(1, 2)                    # [1, N, C]
-            self.pe = image_pe.flatten(2).transpose(1, 2)                             # [1, N, C]
-            keys_pe = self.keys + self.pe
+            self.keys = (image + dense).flatten(2).transpose(1, 2)                    # X0 [1, N, C]
+            pe = image_pe.flatten(2)[0].T                                             # [N, C]
+            keys_pe = self.keys + pe
             t2i, i2t = first.cross_attn_token_to_image, first.cross_attn_image_to_token
             self.first_k = _split_heads(t2i.k_proj(keys_pe), t2i.heads)               # [1, h, N, d]
             self.first_v = _split_heads(t2i.v_proj(self.keys), t2i.heads)
-            self.first_q = _split_heads(i2t.q_proj(keys_pe), i2t.heads).transpose(-1, -2)   # [1, h, d, N]
+            self.first_q = _split_heads(i2t.q_proj(keys_pe), i2t.heads)[0]            # [h, N, d]
+            # the centred map X0 - mean0 and its products with the first update's values
+            x0 = self.keys[0]
+            self.mean0 = x0.mean(-1)                                                  # [N]
+            x0 = x0 - self.mean0[:, None]
+            self.squares0 = (x0 * x0).sum(-1)
+            self.out0 = _split_heads(x0 @ i2t.out_proj.weight, i2t.heads)             # [h, N, d]
+            self.bias0 = x0 @ i2t.out_proj.bias
+            # Y = (X0 - mean0) g1, the rows of the map after the first norm that all prompts share
+            g1, b1, out1 = first.norm4.weight, first.norm4.bias, i2t.out_proj
+            y = x0 * g1
+            t2i, i2t = second.cross_attn_token_to_image, second.cross_attn_image_to_token
+            self.second_k = Projected.of(t2i.k_proj, t2i.heads, y, pe + b1)
+            self.second_v = Projected.of(t2i.v_proj, t2i.heads, y, b1[None])
+            self.second_q = Projected.of(i2t.q_proj, i2t.heads, y, pe + b1)
+            # Yc = Y - its mean and its products with the updates' values and b1
+            self.mean_y = y.mean(-1)
+            y = y - self.mean_y[:, None]
+            self.squares_y = (y * y).sum(-1)
+            self.out_y1 = _split_heads((y * g1) @ out1.weight, i2t.heads)
+            self.bias_y1 = (y * g1) @ out1.bias
+            self.gain_y1 = y @ g1
+            self.out_y2 = _split_heads(y @ i2t.out_proj.weight, i2t.heads)
+            self.bias_y2 = y @ (i2t.out_proj.bias + b1)
+            g2, b2 = second.norm4.weight, second.norm4.bias
+            self.final_k = Projected.of(final.k_proj, final.heads, y * g2, pe + b2)
+            self.final_v = Projected.of(final.v_proj, final.heads, y * g2, b2[None])
             w = conv.weight.permute(0, 2, 3, 1).flatten(1)                            # [C, 2*2*64] channels last
-            self.conv_w2 = second.norm4.weight[:, None] * w                           # W'
-            self.conv_w1 = first.norm4.weight[:, None] * self.conv_w2                 # W''
-            self.conv_b1 = first.norm4.bias @ self.conv_w2
-            self.conv_b2 = second.norm4.bias @ w + conv.bias.repeat(4)
+            self.conv_w2 = g2[:, None] * w                                            # W'
+            self.conv_w1 = g1[:, None] * self.conv_w2                                 # W''
+            self.conv_b1 = b1 @ self.conv_w2
+            self.conv_b2 = b2 @ w + conv.bias.repeat(4)
             self.keys_conv = self.keys @ self.conv_w1                                 # X0 W'' [1, N, 256]
             conv2 = decoder.output_upscaling[3]
             self.up2_w = conv2.weight.permute(0, 2, 3, 1).flatten(1)                # [64, 2*2*32] channels last
             self.up2_b = conv2.bias.repeat(4)
+
+    def _first_norm(self, update: MapUpdate, norm: torch.nn.LayerNorm) -> LowRankMap:
+        """The maps after the first block, ``norm(X0 + a^T V)`` for the update's weights ``a`` and
+        values ``V``; sets the update's statistics. The centred map is ``(X0 - mean0) + a^T Vc``
+        (``Vc`` the values less their means), whose squares sum to
+        ``|X0 - mean0|^2 + 2 a . ((X0 - mean0) . V) + a . (Vc Vc^T a)``."""
+        a, values = update.weights, update.values                                    # [B, 56, N], [B, 56, C]
+        centred = _centred(values)
+        t = _add_heads((0.5 * _gram(centred, centred)) @ a, _head_scores(update.heads, self.out0))
+        rstd = _rstd(self.squares0 + 2 * self.bias0 + 2 * _dot(a, t), norm)          # sum over heads of a is 8
+        update.rstd = rstd.transpose(1, 2)
+        update.mean = (self.mean0 + values.mean(-1)[:, None] @ a).transpose(1, 2)
+        return LowRankMap(rstd, a, centred * norm.weight)
+
+    def _second_norm(self, x1: LowRankMap, first: MapUpdate, update: MapUpdate,
+                     norm: torch.nn.LayerNorm) -> LowRankMap:
+        """The maps after the second block, ``norm(X1 + a2^T V2)`` for the maps ``x1`` after the
+        first (``rstd1 (Y + a1^T R1) + b1``) and the update's weights ``a2`` and values ``V2``; sets
+        the update's statistics. The centred map is ``rstd1 u + v`` with ``u = Yc + a1^T R1c`` and
+        ``v = a2^T V2c + b1c`` (c: less the mean over channels); its squares sum to
+        ``rstd1^2 |u|^2 + 2 rstd1 u . v + |v|^2``, each a sum of [56, 56] quadratic forms."""
+        b1 = self.decoder.transformer.layers[0].norm4.bias
+        a1, a2, rstd1 = first.weights, update.weights, x1.rstd
+        rows1, values2, bias1 = _centred(x1.rows), _centred(update.values), _centred(b1)
+        mean1 = first.values.mean(-1)[:, None] @ a1                                 # a1 . the values' means
+        t = _add_heads((0.5 * _gram(rows1, rows1)) @ a1, _head_scores(first.heads, self.out_y1))
+        uu = self.squares_y + 2 * _dot(a1, t) + 2 * (self.bias_y1 - mean1 * self.gain_y1)
+        t = _gram(rows1, values2) @ a2 + (rows1 @ bias1)[..., None]
+        uv = _dot(a1, t).add_(self.bias_y2)
+        t = _add_heads(_gram(values2, values2) @ a2 + 2 * (values2 @ bias1)[..., None],
+                       _head_scores(update.heads, self.out_y2), 2 * rstd1)           # and 2 rstd1 (Yc . V2)
+        squares = rstd1 ** 2 * uu + 2 * rstd1 * uv + _dot(a2, t) + bias1 @ bias1
+        rstd = _rstd(squares, norm)
+        update.rstd = rstd.transpose(1, 2)
+        mean = rstd1 * (self.mean_y + x1.rows.mean(-1)[:, None] @ a1) + b1.mean() + update.values.mean(-1)[:, None] @ a2
+        update.mean = mean.transpose(1, 2)
+        g2 = norm.weight
+        return LowRankMap(rstd, a2, values2 * g2, LowRankMap(rstd1, a1, rows1 * g2), bias1 * g2)
 
     def transform(self, sparse: torch.Tensor) -> PromptTokens:
         """The two-way transformer (:class:`~.sam_decoder.TwoWayTransformer`) of the decoder's
@@ -168,27 +328,24 @@ class PointDecoder:
             queries = first.norm3(queries + first.mlp(queries))
             i2t = first.cross_attn_image_to_token
             k = _split_heads(i2t.k_proj(queries + tokens), i2t.heads)                # [B, h, T, d]
-            first_update = _image_update(i2t, k @ self.first_q, queries)
-            keys = _apply(first_update, self.keys, first.norm4)
+            first_update = _image_update(i2t, _head_scores(k, self.first_q).transpose(0, 1), queries)
+            x1 = self._first_norm(first_update, first.norm4)
 
             q = queries + tokens
             queries = second.norm1(queries + second.self_attn(q, q, queries))
-            keys_pe = keys + self.pe
-            queries = second.norm2(queries + _tokens_to_image(second.cross_attn_token_to_image, queries + tokens,
-                                                             keys_pe, keys))
+            queries = second.norm2(queries + _attend(second.cross_attn_token_to_image, queries + tokens, x1,
+                                                     self.second_k, self.second_v))
             queries = second.norm3(queries + second.mlp(queries))
             i2t = second.cross_attn_image_to_token
             k = _split_heads(i2t.k_proj(queries + tokens), i2t.heads)                # [B, h, T, d]
-            folded = k @ _head_weights(i2t.q_proj, i2t.heads)                        # [B, h, T, C]
-            bias = k @ i2t.q_proj.bias.view(i2t.heads, -1, 1)                        # [B, h, T, 1]
-            logits = (folded.flatten(1, 2) @ keys_pe.transpose(1, 2)).unflatten(1, (i2t.heads, -1)) + bias
+            logits = _map_logits(x1, k, self.second_q).unflatten(1, (i2t.heads, -1))
             second_update = _image_update(i2t, logits, queries)
-            keys = _apply(second_update, keys, second.norm4)
+            x2 = self._second_norm(x1, first_update, second_update, second.norm4)
 
             final = dec.transformer.final_attn_token_to_image
             read = list(READ_TOKENS)                                                  # the last attention's other
             queries, tokens = queries[:, read], tokens[:, read]                       # outputs are never read
-            queries = queries + _tokens_to_image(final, queries + tokens, keys + self.pe, keys)
+            queries = queries + _attend(final, queries + tokens, x2, self.final_k, self.final_v)
             return PromptTokens(dec.transformer.norm_final_attn(queries), first_update, second_update)
 
     def iou(self, tokens: PromptTokens) -> torch.Tensor:
