@@ -365,25 +365,25 @@ class PointDecoder:
         def window(x: torch.Tensor) -> torch.Tensor:                                 # [B, N, k] -> its window
             return x.unflatten(1, (g, g))[:, :rows, :cols].flatten(1, 2)
 
-        def augmented(update: MapUpdate, w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-            a = torch.cat([window(update.weights.transpose(1, 2)), -window(update.mean)], -1)   # [B, n, h*T + 1]
-            return a, torch.cat([update.values @ w, w.sum(0).expand(b, 1, -1)], 1)          # [B, h*T + 1, 256]
-
+        first, second = tokens.first, tokens.second
         with torch.no_grad():
             mlps = dec.output_hypernetworks_mlps
             hyper = torch.stack([mlps[i](tokens.hs[:, 1 + k]) for k, i in enumerate(MULTIMASK)], 2)  # [B, 32, 3]
-            first, first_values = augmented(tokens.first, self.conv_w1)
-            second, second_values = augmented(tokens.second, self.conv_w2)
-            keys, rstd1, rstd2 = window(self.keys_conv), window(tokens.first.rstd), window(tokens.second.rstd)
-            low = []
-            for t in range(0, keys.shape[1], TOKEN_TILE):                             # per token: tiles stay in cache
-                part = slice(t, t + TOKEN_TILE)
-                up = torch.baddbmm(keys[:, part], first[:, part], first_values)
-                up = torch.addcmul(self.conv_b1, up, rstd1[:, part]).baddbmm_(second[:, part], second_values)
+            rstd1, rstd2 = window(first.rstd), window(second.rstd)
+            coeffs = torch.cat([window(first.weights.transpose(1, 2)) * rstd1, -window(first.mean) * rstd1,
+                                window(second.weights.transpose(1, 2)), -window(second.mean)], -1)   # [B, n, 114]
+            values = torch.cat([first.values @ self.conv_w1, self.conv_w1.sum(0).expand(b, 1, -1),
+                                second.values @ self.conv_w2, self.conv_w2.sum(0).expand(b, 1, -1)], 1)
+            keys = window(self.keys_conv)
+            out = keys.new_empty(b, len(MULTIMASK), UPSCALE * rows, UPSCALE * cols)
+            tiles = out.view(b, len(MULTIMASK), rows, 2, 2, cols, 2, 2).permute(0, 2, 5, 3, 6, 4, 7, 1)  # i, j, a, c, a2, c2
+            step = max(1, TOKEN_TILE // cols)                                         # token rows a tile
+            for i in range(0, rows, step):                                            # tiles stay in cache
+                part = slice(i * cols, min(i + step, rows) * cols)
+                up = torch.addcmul(self.conv_b1, keys[:, part], rstd1[:, part]).baddbmm_(coeffs[:, part], values)
                 up = torch.addcmul(self.conv_b2, up, rstd2[:, part]).unflatten(-1, (4, -1))   # [B, tile, 4, 64]
                 up = F.gelu(F.layer_norm(up, up.shape[-1:], norm.weight, norm.bias, norm.eps))
                 up = F.gelu((up @ self.up2_w).add_(self.up2_b))         # [B, tile, 4, 4*32]
-                low.append(up.flatten(1, 2).unflatten(-1, (4, -1)).flatten(1, 2) @ hyper)   # [B, tile*16, 3]
-            low = torch.cat(low, 1)
-        low = low.view(b, rows, cols, 2, 2, 2, 2, len(MULTIMASK))                     # i, j, a, c, a2, c2
-        return low.permute(0, 7, 1, 3, 5, 2, 4, 6).reshape(b, len(MULTIMASK), UPSCALE * rows, UPSCALE * cols)
+                low = up.flatten(1, 2).unflatten(-1, (4, -1)).flatten(1, 2) @ hyper    # [B, tile*16, 3]
+                tiles[:, i:i + step].copy_(low.view(b, -1, cols, 2, 2, 2, 2, len(MULTIMASK)))
+        return out
