@@ -25,8 +25,8 @@ cross-attentions of 8 heads of width d = 16:
   ``rstd2 * (rstd1 * ((X0 W'' + a1^T V1 W'') - mean1 c1) + b1 W' + a2^T V2 W' - mean2 c2) + b2 W + bias``
   (``W' = diag(g2) W``, ``W'' = diag(g1) W'``, ``c`` their column sums): ``X0 W''`` once per
   image, then one [N, 2*(8*7+1)] x [2*(8*7+1), 256] product per prompt instead of [N, C] x [C, 256].
-- The second convolution is per pixel too ([64] -> [2*2*32] channels last); the masks stay in
-  that sub-pixel order until the last reshape. Only the three multimask outputs are decoded
+- The second convolution is per pixel too ([64] -> [2*2*32] channels last); each tile's masks
+  are copied from that sub-pixel order into the output's. Only the three multimask outputs are decoded
   (the single-mask output is never used; the last attention runs for the four output tokens that
   are read), only for the token rows and columns the caller's crop reads, and only for the
   prompts asked for.
