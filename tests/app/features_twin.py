@@ -12,8 +12,8 @@ import torch
 from qr_cl.app.features.boxes import mask_boxes, near_crop_edge, nms
 from qr_cl.app.features.frames import FrameFeatures, encode_crops
 from qr_cl.app.features.langsplat import id_map, mask_crops, overlap_filter
-from qr_cl.app.features.masks import (LEVELS, MaskSettings, Masks, _clean, crop_boxes, point_grid,
-                                      stability_scores)
+from qr_cl.app.features.mask_upsampling import stability_scores
+from qr_cl.app.features.masks import LEVELS, MaskSettings, Masks, _clean, crop_boxes, point_grid
 from qr_cl.app.features.sam_model import upsampling_matrix
 
 

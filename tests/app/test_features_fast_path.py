@@ -10,8 +10,8 @@ import torch
 
 from qr_cl.app.features import frames
 from qr_cl.app.features.frames import encode_crops, frame_features
-from qr_cl.app.features.mask_upsampling import Taps, stability_bound, upsample
-from qr_cl.app.features.masks import MaskSettings, stability_scores
+from qr_cl.app.features.mask_upsampling import Taps, stability_bound, stability_scores, upsample
+from qr_cl.app.features.masks import MaskSettings
 from qr_cl.app.features.point_decoder import PointDecoder
 from qr_cl.app.features.random_models import random_clip, random_sam
 from qr_cl.app.features.sam_model import upsampling_matrix

@@ -6,10 +6,10 @@ LangSplat's levels are all of them ("default") and each output alone ("s", "m", 
 as SAM's generator does: masks whose predicted IoU is <= ``pred_iou`` or whose stability (IoU
 of the logits thresholded at +1 and -1) is < ``stability`` are dropped (the cheap tests first:
 the IoU before the masks are upscaled, a bound of the stability before they are upsampled to
-the crop's size, :mod:`.mask_upsampling`), so are masks near a crop
-edge that is not an image edge; box NMS removes duplicates within a crop (by predicted IoU) and
-between crops (preferring smaller crops); holes and islands smaller than ``min_area`` px are
-removed, and box NMS runs again preferring masks that needed no such change.
+the crop's size, then only the pixels near a threshold upsampled, :mod:`.mask_upsampling`), so
+are masks near a crop edge that is not an image edge; box NMS removes duplicates within a crop
+(by predicted IoU) and between crops (preferring smaller crops); holes and islands smaller than
+``min_area`` px are removed, and box NMS runs again preferring masks that needed no such change.
 """
 from __future__ import annotations
 
@@ -21,7 +21,7 @@ import torch
 from scipy import ndimage
 
 from .boxes import mask_boxes, near_crop_edge, nms
-from .mask_upsampling import stability_bound
+from .mask_upsampling import stable_masks
 from .sam_model import Sam
 
 #: LangSplat's mask levels, in the order of ``_s.npy``.
@@ -98,11 +98,6 @@ def crop_boxes(height: int, width: int, layers: int, overlap: float) -> list[tup
     return boxes
 
 
-def stability_scores(logits: torch.Tensor, offset: float) -> torch.Tensor:
-    """[n] pixels above +offset over pixels above -offset of ``logits`` [n, H, W]."""
-    return (logits > offset).flatten(1).sum(1) / (logits > -offset).flatten(1).sum(1)
-
-
 def _crop_masks(sam: Sam, image: np.ndarray, crop: tuple[int, int, int, int], settings: MaskSettings,
                 full: tuple[int, int]) -> list[Masks]:
     """Per level, the masks of one crop that pass the per-mask filters and the crop's box NMS,
@@ -121,13 +116,8 @@ def _crop_masks(sam: Sam, image: np.ndarray, crop: tuple[int, int, int, int], se
         keep = passing[prompts].flatten()
         output = (torch.arange(len(keep), device=keep.device) % 3)[keep]
         low, iou = low[keep], iou[prompts].flatten()[keep]
-        keep = stability_bound(low, view.rows, view.cols, settings.stability_offset) >= settings.stability
-        low, iou, output = low[keep], iou[keep], output[keep]
-        logits = view.upsample(low)                                        # only the masks the bound leaves
-        stab = stability_scores(logits, settings.stability_offset)
-        keep = stab >= settings.stability
-        masks = logits[keep] > 0
-        iou, stab, output = iou[keep], stab[keep], output[keep]
+        keep, masks, stab = stable_masks(low, view.rows, view.cols, settings.stability_offset, settings.stability)
+        iou, output = iou[keep], output[keep]
         boxes = mask_boxes(masks) + offset
         keep = ~near_crop_edge(boxes, crop, (0, 0, full[1], full[0]))
         found = Masks(masks[keep], boxes[keep], iou[keep], stab[keep],
