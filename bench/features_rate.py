@@ -51,6 +51,7 @@ STAGES = [("SAM image encoder", "sam_model", "Sam.embed"),
           ("upsampling and mask filters", "sam_model", "SamImage.upsample"),
           ("upsampling and mask filters", "masks", "stability_bound"),
           ("upsampling and mask filters", "masks", "stability_scores"),
+          ("upsampling and mask filters", "masks", "stable_masks"),
           ("NMS and cleanup", "masks", "nms"),
           ("NMS and cleanup", "masks", "_clean"),
           ("CLIP", "frames", "encode_crops")]
