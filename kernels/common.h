@@ -8,8 +8,8 @@
    the SH basis constants SH_C0, SH_C1, SH_C2_0..4, SH_C3_0..6 and the layouts of the splat
    (SPLAT_*), the footprint (FOOTPRINT_*, SPAN_ROWS) and a selection's walk state (WALK_*) are
    defined by the build (-D), from qr_cl/runtime/constants.py; from the device, by Runtime:
-   ACC_FLOATS (the floats of a row kept in registers, see RV), GROUP_RAYS (the rays of a tile
-   walk's work-group) and BLEND_GROUP (the work-items of a GPU blend's work-group). */
+   ACC_FLOATS (the floats of a row kept in registers, see RV in rows.h), GROUP_RAYS (the rays of
+   a tile walk's work-group) and BLEND_GROUP (the work-items of a GPU blend's work-group). */
 #ifndef QR_CL_COMMON_H
 #define QR_CL_COMMON_H
 

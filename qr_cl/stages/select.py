@@ -134,7 +134,7 @@ def ray_launch(plan: RasterPlan, pixels: np.ndarray | None) -> tuple[int, int]:
 
 def ray_blocks(plan: RasterPlan, pixels: np.ndarray | None, per_block: int, pad_to: int = 1) -> tuple[int, dict]:
     """(blocks, arguments) of a kernel walking rays in blocks of up to ``per_block`` rays of one
-    tile (BLOCK_ARGS of kernels/common.h): the whole image in blocks of per_block consecutive
+    tile (BLOCK_ARGS of kernels/walk.h): the whole image in blocks of per_block consecutive
     pixels of a tile (a tile row for the block walk, a tile or part of one for the tile walk:
     ``tiles * TILE * TILE / per_block`` blocks); a pixel subset grouped by tile (stable order) into
     blocks of at most per_block rays: blocks [B, 4] = (first, count, tile, 0) into order [P], the
