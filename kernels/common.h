@@ -92,7 +92,6 @@ static inline float splat_alpha(float8 s, float px, float py) {
     return a < ALPHA_MIN ? 0.f : a;
 }
 
-
 /* ---- walk windows: a walk split over launches ----
 
    A device whose driver ends long loops early (Runtime.loop_limit) walks the tile lists a window

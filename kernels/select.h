@@ -4,6 +4,8 @@
 #define QR_CL_SELECT_H
 #include "walk.h"
 
+/* ---- a ray's outputs ---- */
+
 /* Divide the n weights T^Q_j alpha'_j by 1 - T^Q. 1 - T^Q equals their sum exactly (telescoping);
    the sum of positive terms is the better conditioned of the two in float (1 - T^Q cancels when
    alpha is small), and makes the normalized weights sum to 1 to rounding. */
@@ -64,7 +66,7 @@ static inline void finish_ray(int p, int n, float T, float TQ, int K, __global f
 #define RESUME_BOUNDARIES(p, mu, sigma, t_end) \
     (mu = state_f[p].WALK_MU, sigma = state_f[p].WALK_SIGMA, t_end = state_f[p].WALK_T_END)
 
-/* ---- the boundaries ---- */
+/* ---- the boundaries of Q-Render and Stratified-K ---- */
 
 /* The (k+1)-th of the K equal transmittance boundaries of Q-Render: 1 - (k+1)/(K+1). */
 static inline float quantile_boundary(int k, int K) { return 1.f - (float)(k + 1) / (float)(K + 1); }
@@ -150,6 +152,7 @@ static inline float2 transmittance_stats(float sum, float sum_sq, float used) {
     const float mu = sum / fmax(used, 1.f);
     return (float2)(mu, sqrt(fmax(sum_sq / fmax(used, 1.f) - mu * mu, 0.f)));
 }
+
 /* ---- top-K's heap ---- */
 
 /* Min-heap order of (weight, list position): the smaller weight, or on a tie the later

@@ -116,5 +116,4 @@ static inline int spans_stored(int4 rect) { return rect.w - rect.y <= SPAN_ROWS 
         } \
     }
 
-
 #endif
