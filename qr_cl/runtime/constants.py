@@ -72,6 +72,7 @@ SPLAT_FLOATS = 8
 #: The splat's layout (see :class:`SplatLayout`).
 SPLAT = SplatLayout()
 
+
 class WalkStateLayout(NamedTuple):
     """Where a selection's walk waits between walk windows (kernels/select.h): a slot of the ray's
     float8 in ``state_f`` for each float field, of its int4 in ``state_i`` for each of
@@ -85,7 +86,7 @@ class WalkStateLayout(NamedTuple):
     mu: int = 2                      # Stratified-K's boundaries: the normal's mean,
     sigma: int = 3                   # its deviation
     t_end: int = 4                   # and the T where the first walk ended
-    sum: int = 5                     # Stratified-K's first walk: the sum of T after each blended Gaussian,
+    sum: int = 5                     # Stratified-K's first walk: the sum of T after each Gaussian,
     sum_sq: int = 6                  # of T^2
     used: int = 7                    # and their count
     k: int = 0                       # int: the next boundary (quantile, stratified)
