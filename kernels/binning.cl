@@ -1,7 +1,7 @@
 /* Tile binning: one sort key per (Gaussian, touched tile), then per-tile [start, end) ranges.
    Every pass visits a Gaussian's tiles as the row spans of its blend ellipse inside its tile
-   rectangle, in row-major order (FOR_TILE_SPANS in common.h). */
-#include "common.h"
+   rectangle, in row-major order (FOR_TILE_SPANS in spans.h). */
+#include "spans.h"
 
 /* key = tile id << 32 | float bits of the (positive) depth, so a sort orders by tile then depth. */
 __kernel void emit_keys(const int n, __global const int16 *footprints, __global const int *offsets,

@@ -21,6 +21,7 @@
    V-Render entries) take a window [walk_from, walk_to) of it (common.h); the sums wait in their
    outputs between windows. */
 #include "common.h"
+#include "rows.h"
 
 /* Entries of each row a work-group stages in local memory at a time (GPU shapes). */
 #define GROUP_ENTRIES 16

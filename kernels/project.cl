@@ -1,8 +1,8 @@
 /* EWA projection, TILE Gaussians per work-item: lane l of the TILE-wide vectors (lanef, lanei
-   of common.h) is Gaussian i0 + l, so the per-Gaussian math runs as SIMD code (PoCL does not
+   of lanes.h) is Gaussian i0 + l, so the per-Gaussian math runs as SIMD code (PoCL does not
    vectorize this kernel across work-items).
    3DGS conventions, 0.3 px low-pass. */
-#include "common.h"
+#include "spans.h"
 
 /* The largest radius stored in radii (px): a float beyond INT_MAX has no defined int value
    (INT_MIN on x86, saturated on GPUs), so the radii are clamped in float first. Same bound as
@@ -107,7 +107,7 @@ static inline void ewa_lane(const ewa_t *e, int l, ewa1_t *s) {
 }
 
 /* The tiles touched by splat s in rect: those of each row that the blend ellipse reaches
-   (tile_spans in common.h), written to rows where they fit (spans_stored). A single tile has
+   (tile_spans in spans.h), written to rows where they fit (spans_stored). A single tile has
    nothing to cull (the twin agrees). */
 static inline int touched_tiles(float8 s, int4 rect, int tiles_x, ushort *rows) {
     if ((rect.z - rect.x) * (rect.w - rect.y) == 1) {
@@ -131,7 +131,7 @@ static inline int touched_tiles(float8 s, int4 rect, int tiles_x, ushort *rows) 
 
 /* Outputs per Gaussian: splat (mean2d, conic, opacity, depth and sigma_max; common.h),
    radii (x, y) in pixels (the half-sides of the opacity-aware box it is binned within, at most
-   the 3-sigma radius; (0, 0) = culled), footprint (common.h: the tile rectangle [x0, y0, x1, y1)
+   the 3-sigma radius; (0, 0) = culled), footprint (spans.h: the tile rectangle [x0, y0, x1, y1)
    and its rows' tile spans), tiles touched (the tiles of those spans) and its depth key (the bits
    of its positive float depth, which order as the depths do; INT_MAX, past all of them, when
    culled).

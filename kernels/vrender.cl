@@ -1,12 +1,12 @@
 /* Fused V-Render forward (full alpha blending, no stored selection): the speed baseline.
 
    Two walks, one result (as in select.cl). vrender (CPU shapes): a work-item per block of TILE
-   pixels (a row of a tile) walks the tile list once for all of them (the block walk of common.h);
+   pixels (a row of a tile) walks the tile list once for all of them (the block walk of walk.h);
    Gaussians that some pixel blends are buffered BATCH at a time as (id, per-pixel weights) and
    then blended into each pixel's output row chunk by chunk, RV vectors of VW channels per chunk
    held in registers, in depth order (a pixel's zero weights are skipped, so each pixel sums
    exactly its own contributions). tile_vrender (GPU shapes): a work-group per tile walks its
-   list (the tile walk of common.h), a work-item per pixel and group of NV * VW channels (the
+   list (the tile walk of walk.h), a work-item per pixel and group of NV * VW channels (the
    second dimension), which blends each Gaussian its pixel uses into its channels as it goes.
    Feature rows have cstride elements (ROW_T: float, or half with -DHALF_ROWS), a multiple of
    VW * RV. A table larger than one device buffer is rendered a row part at a time (as in
@@ -15,7 +15,8 @@
    walk_to) of the lists (common.h); a ray's (T, depth sum, done) waits in state_in / state_out
    (two buffers, swapped between windows: a tile_vrender group reads the state all groups of its
    pixels wrote before). The image rows hold the sums between windows. */
-#include "common.h"
+#include "walk.h"
+#include "rows.h"
 
 #define BATCH 32
 

@@ -1,7 +1,7 @@
 """The constants of the 3DGS conventions and of qr-cl, defined once.
 
 The kernels see the same values: every program is built with ``-D NAME=value`` for each entry of
-:data:`KERNEL_CONSTANTS` (see :mod:`qr_cl.runtime.context`), so ``kernels/common.h`` defines none.
+:data:`KERNEL_CONSTANTS` (see :mod:`qr_cl.runtime.context`), so no kernel header defines them.
 """
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ TILE = 16                          # tiles are TILE x TILE pixels
 ALPHA_MIN = np.float32(1) / np.float32(255)   # Gaussians with a smaller alpha are skipped
 ALPHA_MAX = np.float32(0.99)       # alpha is clamped here
 T_MIN = np.float32(1e-4)           # V-Render stops before T would drop to this
-#: Tile spans (tile_spans in kernels/common.h): a Gaussian is binned to the tiles of each tile row that
+#: Tile spans (tile_spans in kernels/spans.h): a Gaussian is binned to the tiles of each tile row that
 #: its blend ellipse sigma <= sigma_max reaches, the ellipse widened against float rounding: sigma_max
 #: + SPAN_SLACK, times 1 + SPAN_ROUNDING * eps32 * (the conic's condition a c / det); the x-extent by
 #: SPAN_MARGIN_PX + SPAN_MARGIN_REL * its half-width. Conics with det <= SPAN_DET_MIN or a condition
@@ -26,7 +26,7 @@ SPAN_DET_MIN = 1e-30
 SPAN_COND_MAX = 1e5
 MAX_CHANNELS = 2048                # feature channels a render supports (1..MAX_CHANNELS)
 #: Images of at least this many bytes are written with non-temporal stores (VSTREAM in
-#: kernels/common.h); smaller ones, e.g. a training step's rays, are read right after and stay cached.
+#: kernels/rows.h); smaller ones, e.g. a training step's rays, are read right after and stay cached.
 STREAM_MIN_BYTES = 64 << 20
 
 #: The window end of a walk launched whole (walk windows, kernels/common.h): past any list.
@@ -72,10 +72,44 @@ SPLAT_FLOATS = 8
 #: The splat's layout (see :class:`SplatLayout`).
 SPLAT = SplatLayout()
 
+
+class WalkStateLayout(NamedTuple):
+    """Where a selection's walk waits between walk windows (kernels/select.h): a slot of the ray's
+    float8 in ``state_f`` for each float field, of its int4 in ``state_i`` for each of
+    :attr:`INTS`. Every field has a slot of its own whatever the sampler (a walk keeps some of
+    them), so T and T^Q lie in the same slots for Q-Render and Stratified-K.
+
+    The kernels get them as swizzles by :meth:`defines` (``state_f[p].WALK_TQ`` is slot 1)."""
+
+    t: int = 0                       # T, the transmittance of the walk
+    tq: int = 1                      # T^Q, among the selected Gaussians (quantile, stratified)
+    mu: int = 2                      # Stratified-K's boundaries: the normal's mean,
+    sigma: int = 3                   # its deviation
+    t_end: int = 4                   # and the T where the first walk ended
+    sum: int = 5                     # Stratified-K's first walk: the sum of T after each Gaussian,
+    sum_sq: int = 6                  # of T^2
+    used: int = 7                    # and their count
+    k: int = 0                       # int: the next boundary (quantile, stratified)
+    n: int = 1                       # int: the entries written (top-K's heap size; V-Render's fill: next slot)
+    done: int = 2                    # int: -1 once the ray stopped, else 0
+
+    INTS = ("k", "n", "done")
+
+    def defines(self) -> dict[str, str]:
+        """``WALK_<FIELD>`` -> the OpenCL C swizzle of its slot (``s1``)."""
+        return {f"WALK_{name.upper()}": f"s{slot:x}" for name, slot in self._asdict().items()}
+
+
+#: Floats (an OpenCL float8) and ints (an int4) of a ray's walk state.
+WALK_STATE_FLOATS = 8
+WALK_STATE_INTS = 4
+#: The walk state's layout (see :class:`WalkStateLayout`).
+WALK_STATE = WalkStateLayout()
+
 #: A Gaussian's footprint (project.cl writes it, the binning passes read it): 16 int32 (an OpenCL
 #: int16, 64 bytes) holding its tile rectangle [x0, y0, x1, y1) and, from int FOOTPRINT_SPANS.start
 #: on, the tiles [x0, x1) of up to SPAN_ROWS of its tile rows as ushorts (x0 - rect x0) |
-#: (x1 - rect x0) << 8 (kernels/common.h: FOR_TILE_SPANS).
+#: (x1 - rect x0) << 8 (kernels/spans.h: FOR_TILE_SPANS).
 FOOTPRINT_INTS = 16
 FOOTPRINT_RECT = slice(0, 4)
 FOOTPRINT_SPANS = slice(4, FOOTPRINT_INTS)
@@ -107,6 +141,7 @@ def _kernel_constants() -> dict[str, str]:
     for name, values in (("SH_C2", SH_C2), ("SH_C3", SH_C3)):
         out.update({f"{name}_{i}": _float_literal(v) for i, v in enumerate(values)})
     out.update(SPLAT.defines())
+    out.update(WALK_STATE.defines())
     out.update({"FOOTPRINT_RECT": str(FOOTPRINT_RECT.start), "FOOTPRINT_SPANS": str(FOOTPRINT_SPANS.start),
                 "SPAN_ROWS": str(SPAN_ROWS)})
     return out

@@ -23,7 +23,7 @@ from .sources import kernel_files, kernel_source
 #: Work-group size of GPU-shaped launches (a multiple of every vendor's SIMD width: 32 or 64).
 GROUP_SIZE = 64
 #: Local memory of the GPU-shaped kernels: bytes per ray of a tile walk's batch (an id and a
-#: splat, kernels/common.h TILE_WALK) and per work-item of a GPU blend (group_blend in blend.cl:
+#: splat, kernels/walk.h TILE_WALK) and per work-item of a GPU blend (group_blend in blend.cl:
 #: a row's start and count, GROUP_ENTRIES = 16 staged ids and weights).
 TILE_WALK_BYTES_PER_RAY = 4 + 32
 GROUP_BLEND_BYTES_PER_ITEM = 8 + 16 * 8
@@ -125,7 +125,7 @@ class Runtime:
 
     @property
     def group_rays(self) -> int:
-        """The rays of a tile walk's work-group (``GROUP_RAYS`` of kernels/common.h)."""
+        """The rays of a tile walk's work-group (``GROUP_RAYS`` of kernels/walk.h)."""
         return self._group_size(GROUP_RAYS_CHOICES, TILE_WALK_BYTES_PER_RAY, "qr-cl's tile walks")
 
     @property
@@ -176,7 +176,7 @@ class Runtime:
     @property
     def accumulator_floats(self) -> int:
         """Floats of a feature row a blend loop keeps in registers at a time (``ACC_FLOATS`` of
-        kernels/common.h): about half the vector register file, from the native float vector
+        kernels/rows.h): about half the vector register file, from the native float vector
         width: 16 lanes (AVX-512: 32 registers) give 256, 8 lanes (AVX2: 16 registers) 64, 4
         lanes (SSE, NEON) 32. More spills the accumulators to the stack."""
         width = max(1, int(self.device.native_vector_width_float))

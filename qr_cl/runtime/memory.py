@@ -61,7 +61,7 @@ def check_buffer(rt: Runtime, nbytes: int, what: str) -> None:
 
 def streamed(nbytes: int) -> int:
     """The ``stream`` argument of the kernels that write an output of ``nbytes`` bytes: 1 (write it
-    with non-temporal stores, VSTREAM in kernels/common.h) from STREAM_MIN_BYTES, else 0."""
+    with non-temporal stores, VSTREAM in kernels/rows.h) from STREAM_MIN_BYTES, else 0."""
     return int(nbytes >= STREAM_MIN_BYTES)
 
 
@@ -162,7 +162,7 @@ def shared_array(rt: Runtime, host: np.ndarray, access: str = "rw") -> Iterator[
 def device_rows(rt: Runtime, rows: np.ndarray, cstride: int) -> Iterator[cla.Array]:
     """Rows [R, C] (C <= cstride; a numpy array, e.g. ``tensor.detach().numpy()``) as read-only
     [R, cstride] device rows for the block, float16 for float16 rows (a half feature table, see
-    ``HALF_ROWS`` in kernels/common.h), float32 for any other dtype; copied only when they have to be.
+    ``HALF_ROWS`` in kernels/rows.h), float32 for any other dtype; copied only when they have to be.
 
     C-contiguous rows of that dtype with C == cstride are used in place (zero-copy on devices
     sharing host memory, at any address on PoCL; one copy into a pooled device array elsewhere),

@@ -15,7 +15,7 @@ def check_channels(channels: int) -> None:
 
 
 #: CPU shapes: the most vectors of a row one work-item blends (512 floats: a whole 512-D row;
-#: the kernels accumulate them RV vectors at a time in registers, kernels/common.h), so that each
+#: the kernels accumulate them RV vectors at a time in registers, kernels/rows.h), so that each
 #: entry's id, weight and row address are read once per row instead of once per chunk.
 CPU_ROW_VECTORS = 32
 

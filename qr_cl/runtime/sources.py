@@ -7,12 +7,22 @@ from functools import lru_cache
 from importlib import resources
 
 
+#: A line including one of qr-cl's headers (``kernels/*.h``).
+_INCLUDE = re.compile(r'^#include "(\w+\.h)"$', re.MULTILINE)
+
+
 def kernel_source(name: str) -> str:
-    """Text of ``kernels/<name>`` with ``common.h`` inlined (so driver caches see header edits)."""
+    """Text of ``kernels/<name>`` with the headers it includes inlined, and the headers they
+    include, each once where it is first included (so driver caches see header edits)."""
     root = resources.files("qr_cl.kernels")
-    text = (root / name).read_text()
-    header = (root / "common.h").read_text()
-    return text.replace('#include "common.h"', header)
+    inlined = set()
+
+    def header(match: re.Match) -> str:
+        if match.group(1) in inlined:
+            return ""
+        inlined.add(match.group(1))
+        return _INCLUDE.sub(header, (root / match.group(1)).read_text())
+    return _INCLUDE.sub(header, (root / name).read_text())
 
 
 @lru_cache(maxsize=None)

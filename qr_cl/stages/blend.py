@@ -78,7 +78,7 @@ class BackwardViews:
 
 def row_defines(features: cla.Array) -> dict:
     """The build defines of a kernel that reads the feature table ``features``: ``HALF_ROWS``
-    for a float16 table (read as half, blended in float: kernels/common.h), none for float32."""
+    for a float16 table (read as half, blended in float: kernels/rows.h), none for float32."""
     return {"HALF_ROWS": 1} if features.dtype == np.float16 else {}
 
 

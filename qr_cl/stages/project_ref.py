@@ -87,7 +87,7 @@ def project(means, quats, scales, opacities, viewmat, K, width: int, height: int
 
 def tile_spans(mean2d, conic, opacity: float, rect, tiles_x: int) -> np.ndarray:
     """The tiles of each tile row of ``rect`` [x0, y0, x1, y1) that the blend ellipse of a splat
-    reaches (tile_spans in kernels/common.h, the same widening against rounding): mean2d [2] px,
+    reaches (tile_spans in kernels/spans.h, the same widening against rounding): mean2d [2] px,
     conic [3] (a, b, c), the ellipse sigma <= ln(opacity / ALPHA_MIN). Returns [rows, 3] int64
     (ty, x0, x1): tiles [x0, x1) of row ty, empty when x0 >= x1."""
     x0, y0, x1, y1 = (int(v) for v in rect)

@@ -24,8 +24,8 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cla
 
-from ..runtime import (BLOCK_GROUP, SAMPLERS, TILE, Runtime, check_buffer, device_empty, device_zeros, exclusive_scan,
-                       last_value, to_device, walk_windows)
+from ..runtime import (BLOCK_GROUP, SAMPLERS, TILE, WALK_STATE_FLOATS, WALK_STATE_INTS, Runtime, check_buffer,
+                       device_empty, device_zeros, exclusive_scan, last_value, to_device, walk_windows)
 from .binning import SORT_BYTES_PER_KEY, RasterPlan
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -134,7 +134,7 @@ def ray_launch(plan: RasterPlan, pixels: np.ndarray | None) -> tuple[int, int]:
 
 def ray_blocks(plan: RasterPlan, pixels: np.ndarray | None, per_block: int, pad_to: int = 1) -> tuple[int, dict]:
     """(blocks, arguments) of a kernel walking rays in blocks of up to ``per_block`` rays of one
-    tile (BLOCK_ARGS of kernels/common.h): the whole image in blocks of per_block consecutive
+    tile (BLOCK_ARGS of kernels/walk.h): the whole image in blocks of per_block consecutive
     pixels of a tile (a tile row for the block walk, a tile or part of one for the tile walk:
     ``tiles * TILE * TILE / per_block`` blocks); a pixel subset grouped by tile (stable order) into
     blocks of at most per_block rays: blocks [B, 4] = (first, count, tile, 0) into order [P], the
@@ -176,7 +176,8 @@ class Walk:
     shapes: kernel ``name``, work-groups of BLOCK_GROUP blocks of TILE rays) or the tile walk (GPU
     shapes: kernel ``tile_<name>``, a work-group of GROUP_RAYS rays per block), in the windows
     :func:`qr_cl.runtime.walk_windows` gives, with the rays' walk state between windows in
-    ``state_f`` [P, 8] float32 and ``state_i`` [P, 4] int32 (one slot each when one window)."""
+    ``state_f`` [P, WALK_STATE_FLOATS] float32 and ``state_i`` [P, WALK_STATE_INTS] int32 (fields
+    named by :class:`qr_cl.runtime.WalkStateLayout`; one slot each when one window)."""
 
     def __init__(self, plan: RasterPlan, pixels: np.ndarray | None, n_rays: int, loops: int) -> None:
         rt = self.rt = plan.runtime
@@ -184,8 +185,8 @@ class Walk:
         self.blocks, self.rays = ray_blocks(plan, pixels, self.per_block, 1 if rt.gpu_shaped else BLOCK_GROUP[0])
         self.windows = walk_windows(rt.loop_limit, plan.longest_list if rt.loop_limit else 0, loops)
         slots = n_rays if len(self.windows) > 1 else 1
-        self.state = dict(state_f=device_empty(rt, slots * 8, np.float32),
-                          state_i=device_empty(rt, slots * 4, np.int32))
+        self.state = dict(state_f=device_empty(rt, slots * WALK_STATE_FLOATS, np.float32),
+                          state_i=device_empty(rt, slots * WALK_STATE_INTS, np.int32))
 
     def launch(self, name: str, defines: dict | None = None, windows: list | None = None, **args) -> None:
         """Run kernel ``name`` (its block or tile walk) over every window (or ``windows``)."""

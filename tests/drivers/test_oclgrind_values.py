@@ -15,7 +15,7 @@ def test_projection_under_oclgrind_is_the_twins(tmp_path):
     """The values of project.cl under oclgrind (the reports test reads only its reports): every
     run of the child's ``project_runs`` equal to the first, and the tile rectangles, radii, tiles touched and
     stored row spans equal to the float64 twin's, splats close to it. Caught integer max/min with
-    a scalar bound on a lanei in tile_spans (common.h): oclgrind reads that bound's lanes 1.. out
+    a scalar bound on a lanei in tile_spans (spans.h): oclgrind reads that bound's lanes 1.. out
     of its own memory, so the tiles touched changed from run to run and some Gaussians were culled."""
     import numpy as np
 

@@ -1,16 +1,21 @@
-"""The splat and footprint layouts are named once (qr_cl.runtime.constants) and the kernels follow
-the names: a splat built from named fields comes back from project.cl field by field, and so it
-does when the build is given another layout."""
+"""The splat, footprint and walk-state layouts are named once (qr_cl.runtime.constants) and the
+kernels follow the names: a splat built from named fields comes back from project.cl field by
+field, and so it does when the build is given another layout; selections walked in windows keep
+their bytes when the walk state is given another layout."""
 import numpy as np
 
-from qr_cl.runtime import (ALPHA_MIN, FOOTPRINT_INTS, FOOTPRINT_RECT, SPLAT, SPLAT_FLOATS, SplatLayout, device_empty,
-                           runtime, to_device)
-from qr_cl.stages import project_ref
+from qr_cl.render import rasterize_plan
+from qr_cl.runtime import (ALPHA_MIN, FOOTPRINT_INTS, FOOTPRINT_RECT, KERNEL_CONSTANTS, SAMPLERS, SPLAT, SPLAT_FLOATS,
+                           WALK_STATE, WALK_STATE_FLOATS, WALK_STATE_INTS, Runtime, SplatLayout, WalkStateLayout,
+                           context, device_empty, runtime, to_device)
+from qr_cl.stages import project_ref, select
 from qr_cl.stages.project import lane_items, project, tile_grid
 from tests.twins import H, W, origin_camera
 
 #: Every field in other slots than SPLAT's; absgrad on the slots of depth and sigma_max again.
 MOVED = SplatLayout(mean=slice(6, 8), conic=slice(3, 6), opacity=2, depth=0, sigma_max=1, absgrad=slice(0, 2))
+#: Every field of the walk state in other slots than WALK_STATE's.
+MOVED_WALK = WalkStateLayout(t=7, tq=3, mu=6, sigma=0, t_end=4, sum=1, sum_sq=5, used=2, k=3, n=0, done=1)
 
 
 def _scene(n: int = 40, seed: int = 0):
@@ -96,3 +101,51 @@ def test_kernels_follow_another_layout():
         np.testing.assert_array_equal(moved[1][name], want, err_msg=name)
     for name, got, want in zip(("footprints", "keys", "values"), moved[2:], (footprints, keys, values)):
         np.testing.assert_array_equal(got, want, err_msg=name)
+
+
+def test_walk_state_names_every_slot_once():
+    """The walk state's float fields take the 8 slots of its float8 once each, its int fields
+    (INTS) slots of its int4 once each: one slot per field, whatever the sampler."""
+    for layout in (WALK_STATE, MOVED_WALK):
+        floats = [slot for name, slot in layout._asdict().items() if name not in WalkStateLayout.INTS]
+        ints = [getattr(layout, name) for name in WalkStateLayout.INTS]
+        assert sorted(floats) == list(range(WALK_STATE_FLOATS))
+        assert len(set(ints)) == len(ints) and set(ints) <= set(range(WALK_STATE_INTS))
+    assert WALK_STATE.defines()["WALK_TQ"] == f"s{WALK_STATE.tq:x}"
+
+
+def _selections(rt: Runtime, scene, pixels) -> dict[str, np.ndarray]:
+    """Every sampler's selection (K = 6) of the whole image and of ``pixels`` on ``rt``, by name."""
+    m, q, s, o, v, K, w, h = scene
+    plan = rasterize_plan(m, q, s, o, v, K, w, h, rt=rt)
+    out = {}
+    for sampler in SAMPLERS:
+        for px in (None, pixels):
+            for name, a in select(plan, sampler, 6, px).host().items():
+                out[f"{sampler}/{px is None}/{name}"] = a
+    return out
+
+
+def test_selections_follow_another_walk_state_layout(random_scene, monkeypatch):
+    """Selections walked in windows (block and tile walks) by kernels built with MOVED_WALK are
+    the bytes of the default build's walks in one launch, and the walks did resume."""
+    pixels = np.random.default_rng(5).integers(0, random_scene[6:], (90, 2))
+    want = _selections(runtime(), random_scene, pixels)
+    monkeypatch.setattr(context, "KERNEL_CONSTANTS", {**KERNEL_CONSTANTS, **MOVED_WALK.defines()})
+    rt = Runtime(runtime().device)                 # its programs are built with MOVED_WALK
+    rt.loop_limit = 64
+    resumed = []
+    launch = Runtime.launch
+
+    def counted(self, name, *args, walk_from=None, **kwargs):
+        if walk_from:
+            resumed.append(name)
+        launch(self, name, *args, **({} if walk_from is None else {"walk_from": walk_from}), **kwargs)
+    monkeypatch.setattr(Runtime, "launch", counted)
+    for gpu in (False, True):
+        rt.gpu_shaped = gpu
+        resumed.clear()
+        got = _selections(rt, random_scene, pixels)
+        assert {"tile_quantile" if gpu else "select_quantile", "tile_stratified" if gpu else "select_stratified"} \
+            <= set(resumed), resumed
+        assert [k for k in want if want[k].tobytes() != got[k].tobytes()] == [], gpu
