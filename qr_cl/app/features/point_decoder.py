@@ -376,7 +376,8 @@ class PointDecoder:
                                 second.values @ self.conv_w2, self.conv_w2.sum(0).expand(b, 1, -1)], 1)
             keys = window(self.keys_conv)
             out = keys.new_empty(b, len(MULTIMASK), UPSCALE * rows, UPSCALE * cols)
-            tiles = out.view(b, len(MULTIMASK), rows, 2, 2, cols, 2, 2).permute(0, 2, 5, 3, 6, 4, 7, 1)  # i, j, a, c, a2, c2
+            tiles = out.view(b, len(MULTIMASK), rows, 2, 2, cols, 2, 2)
+            tiles = tiles.permute(0, 2, 5, 3, 6, 4, 7, 1)                              # i, j, a, c, a2, c2
             step = max(1, TOKEN_TILE // cols)                                         # token rows a tile
             for i in range(0, rows, step):                                            # tiles stay in cache
                 part = slice(i * cols, min(i + step, rows) * cols)
