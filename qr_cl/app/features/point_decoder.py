@@ -212,7 +212,10 @@ class PromptTokens:
     second: MapUpdate
 
     def take(self, index: torch.Tensor) -> "PromptTokens":
-        """The prompts at ``index``."""
+        """The prompts at ``index`` (these tokens, not a copy, when ``index`` is a bool mask that
+        keeps them all)."""
+        if index.dtype == torch.bool and bool(index.all()):
+            return self
         return PromptTokens(self.hs[index], *(MapUpdate(u.weights[index], u.values[index], u.mean[index],
                                                         u.rstd[index]) for u in (self.first, self.second)))
 
