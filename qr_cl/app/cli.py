@@ -1,7 +1,7 @@
 """The ``qr-cl`` command line: devices and render here; every other command in its package's command.py.
 
 The delegated commands (:data:`DELEGATED`): demo, bench, train, eval, reproduce, register, query,
-view and features, each a module with ``add_arguments(parser)`` and ``run(args)``.
+view, features and convert, each a module with ``add_arguments(parser)`` and ``run(args)``.
 """
 from __future__ import annotations
 
@@ -31,7 +31,8 @@ DELEGATED = {"demo": ("demo", "the embedded default job (see README)"),
              "register": ("registration", "Dr.Splat's training-free registration of mask features onto Gaussians"),
              "query": ("query", "where is some text in a scene: relevancy per Gaussian, heatmaps, PLYs"),
              "view": ("viewer", "a web viewer on localhost rendering the scene on the CPU"),
-             "features": ("features", "LangSplat mask features of a scene's photos (SAM + CLIP, any torch device)")}
+             "features": ("features", "LangSplat mask features of a scene's photos (SAM + CLIP, any torch device)"),
+             "convert": ("convert", "a scene from one format to another: PLY, .splat, SceneSplat folders")}
 
 
 def _command(package: str):
@@ -106,10 +107,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser = OneLineParser(prog="qr-cl", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
     sub.add_parser("devices", help="list OpenCL devices and mark the one qr-cl uses")
-    r = sub.add_parser("render", help="render a 3DGS scene (.ply or .splat) to PNGs")
-    r.add_argument("scene", help="INRIA 3DGS .ply or antimatter15 .splat")
+    r = sub.add_parser("render", help="render a 3DGS scene (.ply, .splat or a SceneSplat folder) to PNGs")
+    r.add_argument("scene", help="INRIA 3DGS .ply, antimatter15 .splat, SceneSplat folder or scene folder")
     views = r.add_mutually_exclusive_group()
-    views.add_argument("--cameras", help="3DGS cameras.json, V3DG layout or NeRF transforms.json")
+    views.add_argument("--cameras", help="3DGS cameras.json, V3DG layout or NeRF/nerfstudio transforms(_train).json")
     views.add_argument("--orbit", type=positive_int, default=8, help="number of orbit cameras (default 8)")
     r.add_argument("--width", type=positive_int, help="image width in px (orbit default 640; rescales --cameras)")
     r.add_argument("--height", type=positive_int, help="image height in px (orbit default 480)")

@@ -83,19 +83,50 @@ def _gs_camera(path: Path, i: int, entry: dict) -> Camera:
 def _nerf_camera(path: Path, name: str, c2w_gl, width: int, height: int, angle_x: float,
                  angle_y: float | None) -> Camera:
     """A Blender/NeRF camera (OpenGL camera-to-world, horizontal field of view in radians)."""
+    fx = 0.5 * width / math.tan(0.5 * angle_x)
+    fy = 0.5 * height / math.tan(0.5 * angle_y) if angle_y else fx
+    return _opengl_camera(path, name, c2w_gl, fx, fy, width / 2, height / 2, width, height)
+
+
+def _opengl_camera(path: Path, name: str, c2w_gl, fx: float, fy: float, cx: float, cy: float,
+                   width: int, height: int) -> Camera:
+    """A camera from an OpenGL camera-to-world 4x4 and pinhole intrinsics in pixels."""
     c2w = np.asarray(c2w_gl, np.float64)
     if c2w.shape != (4, 4):
         raise SceneFormatError(f"{path}: camera {name!r}: transform_matrix must be 4x4")
-    fx = 0.5 * width / math.tan(0.5 * angle_x)
-    fy = 0.5 * height / math.tan(0.5 * angle_y) if angle_y else fx
-    return Camera(_from_camera_to_world(c2w @ _OPENGL_TO_OPENCV), fx, fy, width / 2, height / 2,
-                  width, height, name)
+    if not np.isfinite(c2w).all():
+        raise SceneFormatError(f"{path}: camera {name!r}: transform_matrix holds NaN or infinite values")
+    return Camera(_from_camera_to_world(c2w @ _OPENGL_TO_OPENCV), fx, fy, cx, cy, width, height, name)
+
+
+def _transforms_camera(path: Path, i: int, frame: dict, shared: dict) -> Camera:
+    """One frame of NeRF/nerfstudio transforms: intrinsics ``fl_x``, ``fl_y``, ``cx``, ``cy``,
+    ``w``, ``h`` (nerfstudio; per frame or shared) or ``camera_angle_x`` (Blender), the frame's
+    values first."""
+    name = str(frame.get("file_path", i))
+
+    def get(key: str, default=None):
+        value = frame.get(key, shared.get(key, default))
+        if value is None:
+            raise SceneFormatError(f"{path}: frame {name!r} has no {key!r} (nor has the file)")
+        return value
+
+    width, height = int(get("w")), int(get("h"))
+    c2w = _field(path, frame, "transform_matrix", f"frame {name!r}")
+    if "fl_x" not in frame and "fl_x" not in shared:
+        return _nerf_camera(path, name, c2w, width, height, float(get("camera_angle_x")),
+                            frame.get("camera_angle_y", shared.get("camera_angle_y")))
+    fx = float(get("fl_x"))
+    return _opengl_camera(path, name, c2w, fx, float(get("fl_y", fx)), float(get("cx", width / 2)),
+                          float(get("cy", height / 2)), width, height)
 
 
 def load_cameras(path: str | os.PathLike) -> list[Camera]:
     """Read cameras from a 3DGS ``cameras.json`` (a list of {width, height, position, rotation,
     fx, fy}), a V3DG layout (``layouts[].cameras[]`` with ``transform_matrix``), or a NeRF
-    ``transforms.json`` (``camera_angle_x`` and ``frames[].transform_matrix``; needs ``w``/``h``).
+    ``transforms.json`` (``frames[].transform_matrix``, with Blender's ``camera_angle_x`` or
+    nerfstudio's ``fl_x``/``fl_y``/``cx``/``cy``, per frame or for all, and ``w``/``h``; camera
+    names are the frames' ``file_path``).
     """
     path = Path(path)
     if not path.is_file():
@@ -114,11 +145,9 @@ def load_cameras(path: str | os.PathLike) -> list[Camera]:
                              c.get("camera_angle_y"))
                 for layout in data["layouts"] for i, c in enumerate(layout.get("cameras", []))]
     if isinstance(data, dict) and "frames" in data:
-        if "w" not in data or "h" not in data:
-            raise SceneFormatError(f"{path}: NeRF transforms need 'w' and 'h' (image size in pixels)")
-        return [_nerf_camera(path, f.get("file_path", str(i)), _field(path, f, "transform_matrix", "frame"),
-                             int(data["w"]), int(data["h"]), float(data["camera_angle_x"]), None)
-                for i, f in enumerate(data["frames"])]
+        if not data["frames"]:
+            raise SceneFormatError(f"{path}: the frame list is empty")
+        return [_transforms_camera(path, i, f, data) for i, f in enumerate(data["frames"])]
     raise SceneFormatError(f"{path}: not a 3DGS cameras.json (a list), a V3DG layout or NeRF transforms")
 
 

@@ -1,4 +1,5 @@
-"""Gaussian scene files: INRIA 3DGS PLY and antimatter15 .splat I/O (activated :class:`Gaussians`).
+"""Gaussian scene files: INRIA 3DGS PLY and antimatter15 .splat I/O (activated :class:`Gaussians`);
+:func:`load_scene` also opens folders (SceneSplat's, :mod:`.scenesplat`).
 
 INRIA PLY stores raw values: ``opacity`` is a logit, ``scale_*`` are logs, ``rot_*`` an
 unnormalised w,x,y,z quaternion, ``f_rest_*`` channel-major (R coefficients 1.., then G, then B).
@@ -20,6 +21,7 @@ import numpy as np
 
 from ..runtime.constants import SH_C0
 from .gaussians import Gaussians, SceneFormatError
+from .scenesplat import SceneSplatFolder, is_scenesplat
 
 OPACITY_LOGIT_LIMIT = 30.0  # float32 sigmoid(30) == 1.0: a finite stand-in for +/-inf
 LOG_SCALE_LIMIT = 80.0      # exp(80) ~ 5.5e34 is finite in float32 (exp(89) is not)
@@ -270,8 +272,13 @@ def load_splat(path: str | os.PathLike) -> Gaussians:
 
 
 def load_scene(path: str | os.PathLike) -> Gaussians:
-    """Load a ``.ply`` or ``.splat`` file by its suffix."""
+    """Load a ``.ply`` or ``.splat`` file by its suffix, or a folder: a SceneSplat folder
+    (:mod:`.scenesplat`) or a scene folder's ``point_cloud.ply``."""
     path = Path(path)
+    if path.is_dir():
+        if is_scenesplat(path) or not (path / "point_cloud.ply").is_file():
+            return SceneSplatFolder(path).gaussians
+        return load_ply(path / "point_cloud.ply")
     if path.suffix.lower() == ".splat":
         return load_splat(path)
     return load_ply(path)

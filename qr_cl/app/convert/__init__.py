@@ -1,0 +1,1 @@
+"""Scene files from one format to another: the ``qr-cl convert`` command (:mod:`.command`)."""
