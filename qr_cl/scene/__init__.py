@@ -1,10 +1,11 @@
 """Scenes: the Gaussian type, scene files (PLY, .splat, SceneSplat folders) and cameras."""
-from .cameras import Camera, load_cameras, load_layout_instance, look_at, orbit_cameras
+from .cameras import (CAMERA_FILES, Camera, load_cameras, load_layout_instance, look_at, orbit_cameras,
+                      scene_camera_file)
 from .files import load_ply, load_scene, load_splat, ply_property_names, read_ply_vertices, save_ply
 from .gaussians import Gaussians, SceneFormatError, quat_multiply, quat_to_rotmat, rgb_from_sh_dc
 from .scenesplat import SceneSplatFolder, is_scenesplat, save_scenesplat
 
-__all__ = ["Camera", "Gaussians", "SceneFormatError", "SceneSplatFolder", "load_cameras", "load_layout_instance",
+__all__ = ["CAMERA_FILES", "Camera", "Gaussians", "SceneFormatError", "SceneSplatFolder", "load_cameras", "load_layout_instance",
            "load_ply", "load_scene", "load_splat", "look_at", "orbit_cameras", "ply_property_names",
            "quat_multiply", "quat_to_rotmat", "read_ply_vertices", "rgb_from_sh_dc", "save_ply",
-           "is_scenesplat", "save_scenesplat"]
+           "is_scenesplat", "save_scenesplat", "scene_camera_file"]

@@ -151,6 +151,20 @@ def load_cameras(path: str | os.PathLike) -> list[Camera]:
     raise SceneFormatError(f"{path}: not a 3DGS cameras.json (a list), a V3DG layout or NeRF transforms")
 
 
+#: A scene folder's camera files, in the order looked for (3DGS, then SceneSplat's / NeRF's frames).
+CAMERA_FILES = ("cameras.json", "transforms_train.json", "transforms.json")
+
+
+def scene_camera_file(folder: str | os.PathLike) -> Path:
+    """The first of :data:`CAMERA_FILES` in ``folder``; SceneFormatError naming the folder when it
+    has none."""
+    folder = Path(folder)
+    found = next((folder / name for name in CAMERA_FILES if (folder / name).is_file()), None)
+    if found is None:
+        raise SceneFormatError(f"{folder}: no cameras (looked for {', '.join(CAMERA_FILES)})")
+    return found
+
+
 def load_layout_instance(path: str | os.PathLike) -> tuple[float, np.ndarray, np.ndarray] | None:
     """(scale, quaternion w,x,y,z, translation) of the single asset instance of a V3DG layout file,
     or None when the file is not such a layout (or places more than one instance)."""

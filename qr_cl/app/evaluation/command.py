@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import difflib
 import json
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -18,7 +19,7 @@ from tqdm import tqdm
 
 from ..arguments import nonnegative_int, positive_float, positive_int
 from ..process import torch_threads
-from ..scenes.folders import load_scene_folder
+from ..scenes.folders import NO_LANGUAGE, load_scene_folder
 from ..training.network import load_checkpoint, network_features
 from .labels import ground_truth
 from .scoring import evaluate_features, markdown_table
@@ -54,7 +55,9 @@ def run(args: argparse.Namespace) -> int:
         raise FileNotFoundError(2, "no such features file (--features)", args.features)
     rows = []
     for path in tqdm(args.scenes, desc="eval", unit="scene"):
-        scene = load_scene_folder(path, args.level)
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", f".*{NO_LANGUAGE}")  # frames without language features are fine here
+            scene = load_scene_folder(path, args.level, require_language=False)
         if args.query and scene.classes is not None and args.query not in scene.classes.names:
             close = difflib.get_close_matches(args.query, scene.classes.names, n=3, cutoff=0.5)
             raise SystemExit(f"qr-cl eval: --query {args.query!r} is not a class of {scene.root / 'classes.json'}"

@@ -17,7 +17,7 @@ from matplotlib import colormaps
 
 from ...render import rasterize
 from ...runtime import SH_C0
-from ...scene import Camera, Gaussians
+from ...scene import Camera, Gaussians, orbit_cameras
 from ..images import plt
 from ..scenes.folders import ClassTable, SceneData, unit_rows
 from .metrics import NYU40_NAMES, SUBSETS, UNLABELLED
@@ -75,9 +75,10 @@ def write_coloured_ply(path: Path, gaussians: Gaussians, colours: np.ndarray, pr
 
 
 def frame_cameras(scene: SceneData, views: Sequence[int]) -> list[Camera]:
-    """The cameras of the scene's frames ``views`` (indices), enlarged to at least
-    :data:`PANEL_SIZE`."""
-    cams = [scene.frames[v].camera for v in views]
+    """The cameras of the scene's frames ``views`` (indices; those it has), enlarged to at least
+    :data:`PANEL_SIZE`; an orbit camera when it has no frames."""
+    cams = [scene.frames[v].camera for v in views if v < len(scene.frames)] if scene.frames else \
+        orbit_cameras(scene.gaussians.means, 1, *PANEL_SIZE)
     return [c if c.width >= PANEL_SIZE[0] else c.resized(PANEL_SIZE[0], round(c.height * PANEL_SIZE[0] / c.width))
             for c in cams]
 

@@ -1,6 +1,7 @@
-"""``qr-cl features``: LangSplat's language features for every frame of a scene's cameras.json.
+"""``qr-cl features``: LangSplat's language features for every frame of a scene's cameras (its
+cameras.json, or a SceneSplat folder's transforms_train.json: :func:`qr_cl.scene.scene_camera_file`).
 
-Reads ``DIR/<img_name>`` per camera, makes SAM's automatic masks at LangSplat's four levels,
+Reads ``DIR/<img_name>`` per camera (``<file_path>``'s file name for transforms), makes SAM's automatic masks at LangSplat's four levels,
 encodes each mask's crop with CLIP's image encoder and writes ``SCENE/language_features/<img>_s.npy``
 and ``<img>_f.npy`` (:mod:`.frames`), frame by frame and atomically, so an interrupted run goes on
 where it stopped (:mod:`.store`). ``--workers N`` runs frames in N processes (:mod:`.workers`);
@@ -27,7 +28,8 @@ EXTRA_MODULES = ("scipy", "regex")
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``qr-cl features``."""
-    parser.add_argument("scene", help="scene folder with cameras.json (language_features/ is written there)")
+    parser.add_argument("scene", help="scene folder with cameras.json or transforms_train.json (language_features/ "
+                                      "is written there)")
     parser.add_argument("--images", required=True, help="folder of the photos: <img_name> of each camera, any "
                                                         "common image extension")
     parser.add_argument("--clip-weights", required=True, help="OpenCLIP (.bin/.safetensors) or OpenAI (.pt) CLIP "
@@ -46,7 +48,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                                                         "and doing whole frames (default 1: in this "
                                                                         "process)")
     parser.add_argument("--shard", type=shard_spec, default=Shard(), metavar="I/N",
-                        help="do only the frames at positions p (0-based, cameras.json's order) with p %% N == I-1, "
+                        help="do only the frames at positions p (0-based, the cameras' order) with p %% N == I-1, "
                              "e.g. 2/8 in an array job; N such runs write every frame once (default 1/1)")
     parser.add_argument("--batch", type=positive_int, default=32, help="mask crops per CLIP batch (default 32)")
     parser.add_argument("--points-per-side", type=positive_int, default=32, help="SAM point grid per side (LangSplat: 32)")
@@ -128,7 +130,7 @@ def _run(args: argparse.Namespace) -> int:
     import torch
     from tqdm import tqdm
 
-    from ...scene import load_cameras
+    from ...scene import load_cameras, scene_camera_file
     from .clip_model import load_clip
     from .masks import MaskSettings
     from .photos import find_images
@@ -137,7 +139,7 @@ def _run(args: argparse.Namespace) -> int:
     from .weights import file_sha256
 
     scene = Path(args.scene)
-    cameras = load_cameras(scene / "cameras.json")
+    cameras = load_cameras(scene_camera_file(scene))
     images = find_images(args.images, cameras)
     device = _device(args.device)
     threads = args.threads or process_cores()

@@ -1,4 +1,5 @@
-"""The scene's photos: ``DIR/<img_name>`` for every camera of ``cameras.json``, with any common
+"""The scene's photos: ``DIR/<img_name>`` for every camera of the scene (``cameras.json``, or the file
+name of each frame's ``file_path`` in transforms), with any common
 image extension, read as RGB uint8 and checked against the camera's size."""
 from __future__ import annotations
 
@@ -49,6 +50,6 @@ def read_image(path: Path, camera: Camera) -> np.ndarray:
     h, w = rgb.shape[:2]
     want = camera.width / camera.height
     if abs(w / h - want) > ASPECT_TOLERANCE * want:
-        raise FeaturesError(f"{path}: image is {w}x{h} (WxH) but cameras.json says {camera.width}x{camera.height} "
+        raise FeaturesError(f"{path}: image is {w}x{h} (WxH) but its camera says {camera.width}x{camera.height} "
                             f"for {camera.name!r}, a different aspect ratio")
     return rgb

@@ -15,9 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ...scene import Camera, Gaussians, load_cameras, load_scene, read_ply_vertices
+from ...scene import CAMERA_FILES, Camera, Gaussians, load_cameras, load_scene, read_ply_vertices, scene_camera_file
 from ..process import torch_threads
-from ..scenes.folders import ClassTable, SceneData, SceneDataError, load_scene_folder
+from ..scenes.folders import NO_LANGUAGE, ClassTable, SceneData, SceneDataError, load_scene_folder
 from ..training.network import load_checkpoint, network_features
 
 #: Numbered vertex properties of a feature PLY: <prefix>_<channel>.
@@ -37,8 +37,9 @@ class QueryScene:
 
 
 def load_query_scene(path: str | Path, level: int = 0) -> QueryScene:
-    """The scene at ``path`` (module docstring): a folder's point_cloud.ply, cameras.json and
-    classes.json (when present), or a ``.ply``/``.splat`` file."""
+    """The scene at ``path`` (module docstring): a folder's Gaussians (point_cloud.ply or
+    SceneSplat's files), cameras (cameras.json or transforms, when present) and classes.json (when
+    present), or a ``.ply``/``.splat`` file."""
     path = Path(path)
     if path.is_file():
         g = load_scene(path)
@@ -46,9 +47,10 @@ def load_query_scene(path: str | Path, level: int = 0) -> QueryScene:
     if not path.exists():
         raise FileNotFoundError(2, "no such scene folder or file", str(path))
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore")           # frames without language features are fine here
+        warnings.filterwarnings("ignore", f".*{NO_LANGUAGE}")  # frames without language features are fine here
         data = load_scene_folder(path, level, require_language=False)
-    return QueryScene(path.name, data.gaussians, load_cameras(path / "cameras.json"), data.classes, data)
+    cameras = load_cameras(scene_camera_file(path)) if any((path / n).is_file() for n in CAMERA_FILES) else []
+    return QueryScene(path.name, data.gaussians, cameras, data.classes, data)
 
 
 def read_features(path: str | Path, n: int) -> np.ndarray:

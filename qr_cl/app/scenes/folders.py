@@ -3,8 +3,10 @@
 Layout (real and synthetic scenes alike)::
 
     scene/
-      point_cloud.ply                 INRIA 3DGS PLY
-      cameras.json                    3DGS cameras (img_name names the frame)
+      point_cloud.ply                 INRIA 3DGS PLY, or SceneSplat's coord.npy, color.npy, ...
+                                      (:mod:`qr_cl.scene.scenesplat`, docs/scenesplat.md)
+      cameras.json                    3DGS cameras (img_name names the frame), or
+                                      transforms_train.json / transforms.json (file_path names it)
       language_features/<img>_s.npy   [L,H,W] (or [H,W]) mask ids per pixel, -1 = none (LangSplat:
                                       L = 4 levels default/small/medium/large, level j's ids
                                       offset by the mask counts of the levels before it)
@@ -14,6 +16,11 @@ Layout (real and synthetic scenes alike)::
       classes.json                    optional {"classes": [{"id", "name", "text_feature": [C]}]}
       labels/gaussian_labels.npy      optional [N] int class id per Gaussian (-1 = unlabelled)
       labels/points.ply               optional labelled point cloud (x, y, z, int ``label``)
+      segment20.npy, instance.npy     a SceneSplat folder's labels (:mod:`.label_spaces`) and
+                                      instance ids (-1 = none)
+
+A SceneSplat folder without camera files has no frames (rendering, evaluation and queries need
+none; training says it needs them).
 
 :func:`load_scene_folder` validates all of it and raises :class:`SceneDataError` naming the file,
 the frame and the problem.
@@ -27,7 +34,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ...scene import Camera, Gaussians, SceneFormatError, load_cameras, load_ply, read_ply_vertices
+from ...scene import (CAMERA_FILES, Camera, Gaussians, SceneFormatError, SceneSplatFolder, is_scenesplat, load_cameras,
+                      load_ply, read_ply_vertices, scene_camera_file)
+
+
+#: The warning of frames skipped for want of language features (filtered where they are not needed).
+NO_LANGUAGE = "no language features"
 
 
 class SceneDataError(SceneFormatError):
@@ -62,8 +74,8 @@ class ClassTable:
 
 @dataclass
 class SceneData:
-    """A loaded scene folder. ``gaussian_labels`` [N] and ``points`` [P,3] / ``point_labels`` [P]
-    are None when the folder has none."""
+    """A loaded scene folder. ``gaussian_labels`` [N] (NYU40 ids), ``points`` [P,3] /
+    ``point_labels`` [P] and ``instances`` [N] (-1 = none) are None when the folder has none."""
 
     root: Path
     gaussians: Gaussians
@@ -72,6 +84,7 @@ class SceneData:
     gaussian_labels: np.ndarray | None
     points: np.ndarray | None
     point_labels: np.ndarray | None
+    instances: np.ndarray | None = None
 
     @property
     def name(self) -> str:
@@ -184,16 +197,21 @@ def load_scene_folder(path, level: int = 0, require_language: bool = True) -> Sc
     root = Path(path)
     if not root.is_dir():
         raise SceneDataError(f"{root}: not a scene folder")
-    gaussians = load_ply(root / "point_cloud.ply")
-    cams = load_cameras(root / "cameras.json")
+    splat = SceneSplatFolder(root) if is_scenesplat(root) else None
+    gaussians = splat.gaussians if splat else load_ply(root / "point_cloud.ply")
+    has_cameras = splat is None or any((root / name).is_file() for name in CAMERA_FILES)
+    cams = load_cameras(scene_camera_file(root)) if has_cameras else []
     lang = root / "language_features"
-    frames = []
+    frames, skipped = [], []
     for cam in cams:
         stem = Path(cam.name).stem
         if not (lang / f"{stem}_s.npy").exists() and not require_language:
-            warnings.warn(f"{lang}: no language features for frame {stem!r}; skipped")
+            skipped.append(stem)
             continue
         frames.append(_load_frame(lang, cam, level))
+    if skipped:
+        warnings.warn(f"{lang}: {NO_LANGUAGE} for {len(skipped)} of {len(cams)} frames "
+                      f"(first: {skipped[0]!r}); skipped")
     dims = {f.features.shape[1] for f in frames if len(f.features)}
     if len(dims) > 1:
         per = {f.name: f.features.shape[1] for f in frames if len(f.features)}
