@@ -105,6 +105,8 @@ class SceneSplatFolder:
                                        "with SH degree d <= 3")
             return sh.astype(np.float32)
         color, path = self._load("color"), self.root / "color.npy"
+        if color.dtype.kind != "f" and color.dtype != np.uint8:
+            raise SceneFormatError(f"{path}: dtype {color.dtype}; expected uint8 0-255 or float 0-1 colours")
         if color.dtype == np.uint8:
             rgb = self._read("color", (3,), "i").astype(np.float64) / 255.0
         else:

@@ -120,7 +120,7 @@ HOSTILE = {
     "colour 0-255 as float": (lambda g: ("color", np.full((len(g), 3), 200.0, np.float32)),
                               r"color\.npy: float32 colours range over \[200, 200\]; expected uint8 0-255 or float 0-1"),
     "colour as int16": (lambda g: ("color", np.full((len(g), 3), 20, np.int16)),
-                        r"color\.npy: dtype int16, expected a float array"),
+                        r"color\.npy: dtype int16; expected uint8 0-255 or float 0-1 colours"),
     "opacity logits": (lambda g: ("opacity", g.opacities * 8 - 4), r"opacity\.npy: opacities range over"),
     "log scales": (lambda g: ("scale", np.log(g.scales)), r"scale\.npy: negative scales"),
     "zero quaternion": (lambda g: ("quat", np.where(np.arange(len(g))[:, None] == 3, 0.0, g.quats)),
