@@ -7,7 +7,8 @@ import pytest
 import qr_cl
 from qr_cl.render import render_volume_fused
 from qr_cl.runtime import SH_C0
-from qr_cl.scene import Gaussians, SceneFormatError, SceneSplatFolder, load_cameras, load_scene, save_scenesplat
+from qr_cl.scene import (Gaussians, SceneFormatError, SceneSplatFolder, load_cameras, load_scene, orbit_cameras,
+                         save_scenesplat)
 
 from ..conftest import make_random_scene
 
@@ -66,8 +67,8 @@ def test_uint8_and_float_colours_give_the_same_dc(tmp_path):
 
 
 def test_folder_renders_the_pixels_of_its_ply(tmp_path):
-    """The folder and the PLY written from its Gaussians render the same pixels, on an orbit-free
-    identity camera and on the folder's own frames (nerfstudio transforms_train.json)."""
+    """The folder and the PLY written from its Gaussians render the same pixels, on the folder's
+    own frames (nerfstudio transforms_train.json) and on orbit cameras."""
     means, quats, scales, opacities, viewmat, K, w, h = make_random_scene(400, seed=3)
     g = scene_gaussians(400, seed=3)
     scenesplat_files(tmp_path / "s", g)
@@ -85,7 +86,7 @@ def test_folder_renders_the_pixels_of_its_ply(tmp_path):
     cams = load_cameras(tmp_path / "s" / "transforms_train.json")
     assert [c.name for c in cams] == ["images/frame_000.jpg", "images/frame_001.jpg"] and cams[1].fx == 50.0
     np.testing.assert_allclose(cams[0].viewmat, viewmat, atol=1e-7)
-    for cam in cams:
+    for cam in cams + orbit_cameras(folder.means, 2, 48, 36):
         images = [render_volume_fused(s.means, s.quats, s.scales, s.opacities, s.sh, cam.viewmat, cam.K,
                                       cam.width, cam.height, sh_degree=0)[0].numpy() for s in (folder, ply)]
         assert images[0].max() > 0.1
