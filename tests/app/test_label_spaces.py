@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from qr_cl.app.evaluation.label_spaces import (IGNORE_INDEX, SCANNET20_NYU40, SCANNET200_NYU40,
-                                               SEGMENT_FILES, SPACES, to_nyu40)
+                                               SEGMENT_SPACES, SPACES, to_nyu40)
 from qr_cl.app.evaluation.metrics import SUBSETS
 from qr_cl.app.vocab import scannet200
 
@@ -80,11 +80,16 @@ def test_bad_input_raises():
         to_nyu40(np.zeros(3, np.int64), "scannet")
     with pytest.raises(ValueError, match="integers"):
         to_nyu40(np.zeros(3, np.float32), "scannet20")
-    with pytest.raises(ValueError, match=r"\[N\]"):
-        to_nyu40(np.zeros((3, 1), np.int64), "scannet20")
+    with pytest.raises(ValueError, match=r"\[N\] or \[N,1\]"):
+        to_nyu40(np.zeros((3, 2), np.int64), "scannet20")
 
 
-def test_segment_files_name_spaces():
-    assert SEGMENT_FILES == {"segment20": "scannet20", "segment200": "scannet200"}
-    assert set(SEGMENT_FILES.values()) <= set(SPACES)
+def test_column_labels_are_flattened():
+    column = np.array([[0], [IGNORE_INDEX], [19]], np.int16)
+    assert to_nyu40(column, "scannet20").tolist() == [1, IGNORE_INDEX, 39]
+
+
+def test_segment_spaces_name_spaces():
+    assert SEGMENT_SPACES == {"segment20": "scannet20", "segment200": "scannet200"}
+    assert set(SEGMENT_SPACES.values()) <= set(SPACES)
     assert len(SCANNET20_NYU40) == 20 and len(SCANNET200_NYU40) == 200

@@ -96,24 +96,25 @@ SPACES: dict[str, dict[int, int]] = {
     "nyu40": {c: c for c in range(1, 41)},
 }
 
-#: SceneSplat folder label file (stem of ``<stem>.npy``) -> the space of its ids. A generic
-#: ``segment.npy`` (other datasets) is not here: its space depends on the dataset, so the caller
-#: names it.
-SEGMENT_FILES: dict[str, str] = {"segment20": "scannet20", "segment200": "scannet200"}
+#: SceneSplat folder label file (stem of ``<stem>.npy``; ``qr_cl.scene.scenesplat.SEGMENT_FILES``)
+#: -> the space of its ids. A generic ``segment.npy`` (other datasets) is not here: its space
+#: depends on the dataset, so the caller names it.
+SEGMENT_SPACES: dict[str, str] = {"segment20": "scannet20", "segment200": "scannet200"}
 
 
 def to_nyu40(labels: np.ndarray, space: str) -> np.ndarray:
-    """NYU40 ids [N] int64 of ``labels`` [N] (integer ids of ``space``, a key of :data:`SPACES`).
+    """NYU40 ids [N] int64 of ``labels`` [N] or [N,1] (integer ids of ``space``, a key of
+    :data:`SPACES`; SceneSplat's label files come in either shape).
 
     :data:`IGNORE_INDEX` stays :data:`IGNORE_INDEX`. ValueError for an unknown space, non-integer
-    labels, or any other id outside the space (naming the space and the first bad ids).
+    labels, another shape, or any other id outside the space (naming the space and the first bad ids).
     """
     if space not in SPACES:
         raise ValueError(f"unknown label space {space!r}: choose one of {', '.join(SPACES)}")
     ids = np.asarray(labels)
-    if ids.ndim != 1 or not np.issubdtype(ids.dtype, np.integer):
-        raise ValueError(f"{space} labels must be [N] integers, got {ids.dtype} {list(ids.shape)}")
-    ids = ids.astype(np.int64)
+    if ids.ndim == 0 or ids.shape[1:] not in ((), (1,)) or not np.issubdtype(ids.dtype, np.integer):
+        raise ValueError(f"{space} labels must be [N] or [N,1] integers, got {ids.dtype} {list(ids.shape)}")
+    ids = ids.reshape(-1).astype(np.int64)
     table = SPACES[space]
     lut = np.zeros(max(table) + 1, np.int64)                       # 0: no id of the space here
     lut[list(table)] = list(table.values())
