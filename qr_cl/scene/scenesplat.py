@@ -33,11 +33,12 @@ from ..runtime.constants import SH_C0
 from .gaussians import Gaussians, SceneFormatError
 
 #: The files every SceneSplat folder has.
-GAUSSIAN_FILES = ("coord", "color", "opacity", "quat", "scale")
+SCENESPLAT_FILES = ("coord", "color", "opacity", "quat", "scale")
 #: Per-Gaussian label files, in the order a folder's labels are preferred.
 SEGMENT_FILES = ("segment20", "segment200", "segment")
-#: The ignore index of the label and instance files.
-IGNORE = -1
+#: The ignore index of the label and instance files (Pointcept's and SceneSplat's ``ignore_index``):
+#: a Gaussian without a class or an instance, in every label space.
+IGNORE_LABEL = -1
 
 
 def is_scenesplat(path: str | os.PathLike) -> bool:
@@ -52,7 +53,7 @@ class SceneSplatFolder:
         self.root = Path(path)
         if not self.root.is_dir():
             raise SceneFormatError(f"{self.root}: no such SceneSplat folder")
-        missing = [f"{name}.npy" for name in GAUSSIAN_FILES if not (self.root / f"{name}.npy").is_file()]
+        missing = [f"{name}.npy" for name in SCENESPLAT_FILES if not (self.root / f"{name}.npy").is_file()]
         if missing:
             raise SceneFormatError(f"{self.root}: not a SceneSplat folder, missing {', '.join(missing)}")
         self._arrays: dict[str, np.ndarray] = {}
@@ -141,7 +142,7 @@ class SceneSplatFolder:
 
     def labels(self, name: str) -> np.ndarray:
         """``<name>.npy`` (one of :data:`SEGMENT_FILES` or "instance") as [N] int64; ids below
-        :data:`IGNORE` raise."""
+        :data:`IGNORE_LABEL` raise."""
         a = self._load(name)
         if a.dtype.kind == "f":
             a = self._read(name, ())
@@ -150,8 +151,8 @@ class SceneSplatFolder:
         else:
             a = self._read(name, (), "i")
         a = a.astype(np.int64)
-        if a.size and a.min() < IGNORE:
-            raise SceneFormatError(f"{self.root / f'{name}.npy'}: label {a.min()} is below the ignore index {IGNORE}")
+        if a.size and a.min() < IGNORE_LABEL:
+            raise SceneFormatError(f"{self.root / f'{name}.npy'}: label {a.min()} is below the ignore index {IGNORE_LABEL}")
         return a
 
     def segment_file(self) -> str | None:

@@ -4,17 +4,18 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from qr_cl.app.evaluation.label_spaces import (IGNORE_INDEX, SCANNET20_NYU40, SCANNET200_NYU40,
-                                               SEGMENT_SPACES, SPACES, to_nyu40)
 from qr_cl.app.evaluation.metrics import SUBSETS
+from qr_cl.app.scenes.label_spaces import SCANNET20_NYU40, SCANNET200_NYU40, SEGMENT_SPACES, SPACES, to_nyu40
 from qr_cl.app.vocab import scannet200
+from qr_cl.scene.scenesplat import IGNORE_LABEL
+
 
 @pytest.mark.parametrize("space", sorted(SPACES))
 def test_ignore_index_stays_and_every_id_maps(space):
-    ids = np.array(sorted(SPACES[space]) + [IGNORE_INDEX] * 3, np.int16)   # SceneSplat saves int16
+    ids = np.array(sorted(SPACES[space]) + [IGNORE_LABEL] * 3, np.int16)   # SceneSplat saves int16
     out = to_nyu40(ids, space)
     assert out.dtype == np.int64 and out.shape == ids.shape
-    assert out[-3:].tolist() == [IGNORE_INDEX] * 3
+    assert out[-3:].tolist() == [IGNORE_LABEL] * 3
     assert set(out[:-3].tolist()) <= set(range(1, 41))
 
 
@@ -72,7 +73,7 @@ def test_scannet200_order_matches_the_shipped_class_names():
     ("scannet20", 20), ("scannet20", -2), ("scannet200", 200), ("nyu40", 0), ("nyu40", 41)])
 def test_ids_outside_the_space_raise_naming_it(space, bad):
     with pytest.raises(ValueError, match=rf"^{space} labels: 2 ids outside .*first {bad}$"):
-        to_nyu40(np.array([IGNORE_INDEX, 1, bad, bad]), space)
+        to_nyu40(np.array([IGNORE_LABEL, 1, bad, bad]), space)
 
 
 def test_bad_input_raises():
@@ -85,8 +86,8 @@ def test_bad_input_raises():
 
 
 def test_column_labels_are_flattened():
-    column = np.array([[0], [IGNORE_INDEX], [19]], np.int16)
-    assert to_nyu40(column, "scannet20").tolist() == [1, IGNORE_INDEX, 39]
+    column = np.array([[0], [IGNORE_LABEL], [19]], np.int16)
+    assert to_nyu40(column, "scannet20").tolist() == [1, IGNORE_LABEL, 39]
 
 
 def test_segment_spaces_name_spaces():

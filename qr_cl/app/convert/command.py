@@ -8,8 +8,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ...scene import is_scenesplat, load_scene, save_ply, save_scenesplat
-from ...scene.scenesplat import GAUSSIAN_FILES
+from ...scene import SCENESPLAT_FILES, is_scenesplat, load_scene, save_ply, save_scenesplat
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -30,7 +29,7 @@ def run(args: argparse.Namespace) -> int:
     if dst.suffix.lower() == ".ply":
         save_ply(dst, gaussians)
         if is_scenesplat(src):
-            left = sorted(p.stem for p in src.glob("*.npy") if p.stem not in GAUSSIAN_FILES + ("sh",))
+            left = sorted(p.stem for p in src.glob("*.npy") if p.stem not in SCENESPLAT_FILES + ("sh",))
             left += [p.name for p in src.glob("*.json")]
             if left:
                 print(f"not in the PLY (kept in {src}): {', '.join(left)}")

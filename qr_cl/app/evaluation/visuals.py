@@ -145,7 +145,7 @@ def write_visuals(scene: SceneData, features: np.ndarray, gt: np.ndarray, out: P
         panels = [("RGB", _render(scene, np.maximum(g.sh[:, 0] * SH_C0 + 0.5, 0), cam, "volume")),
                   ("feature PCA", pca_rgb(feature_image)), ("prediction", pred_image),
                   ("ground truth", gt_image), (f'relevancy "{query}"', relevancy)]
-        path = out / f"{scene.name}_{cam.name or f'camera{i}'}.png"
+        path = out / f"{scene.name}_{Path(cam.name).stem or f'camera{i}'}.png"
         _figure(path, panels, legend)
         files.append(path)
     ply = out / f"{scene.name}_segmentation.ply"
@@ -178,7 +178,7 @@ def write_comparison(scene: SceneData, models: dict[str, np.ndarray], gt: np.nda
         panels += [(name, _render(scene, np.stack([palette.get(int(c), UNLABELLED_RGB) for c in pred]), cam, "volume"))
                    for name, pred in preds.items()]
         panels.append(("ground truth", _render(scene, gt_rgb, cam, "volume", np.isin(gt, table.ids))))
-        path = out / f"{scene.name}_{cam.name or f'camera{i}'}_compared.png"
+        path = out / f"{scene.name}_{Path(cam.name).stem or f'camera{i}'}_compared.png"
         _figure(path, panels, legend)
         files.append(path)
     return files

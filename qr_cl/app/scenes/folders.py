@@ -36,6 +36,7 @@ import numpy as np
 
 from ...scene import (CAMERA_FILES, Camera, Gaussians, SceneFormatError, SceneSplatFolder, is_scenesplat, load_cameras,
                       load_ply, read_ply_vertices, scene_camera_file)
+from .label_spaces import SEGMENT_SPACES, to_nyu40
 
 
 #: The warning of frames skipped for want of language features (filtered where they are not needed).
@@ -190,6 +191,21 @@ def read_labelled_points(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return points, np.asarray(columns["label"]).astype(np.int64)
 
 
+def _scenesplat_labels(splat: SceneSplatFolder) -> np.ndarray | None:
+    """A SceneSplat folder's labels as NYU40 ids [N] (-1 = ignored): the first of
+    :data:`.label_spaces.SEGMENT_SPACES` it has, or None (a generic ``segment.npy`` names no space)."""
+    name = next((n for n in SEGMENT_SPACES if splat.has(n)), None)
+    if name is None:
+        if splat.has("segment"):
+            warnings.warn(f"{splat.root / 'segment.npy'}: labels of no known id space; not used as ground "
+                          "truth (write labels/gaussian_labels.npy in NYU40 ids, docs/label-spaces.md)")
+        return None
+    try:
+        return to_nyu40(splat.labels(name), SEGMENT_SPACES[name])
+    except ValueError as exc:
+        raise SceneDataError(f"{splat.root / (name + '.npy')}: {exc}") from None
+
+
 def load_scene_folder(path, level: int = 0, require_language: bool = True) -> SceneData:
     """Load and validate a scene folder (module docstring). ``level`` picks the LangSplat mask level
     (0 = default). Frames without language-feature files raise (or are skipped with a warning when
@@ -225,7 +241,10 @@ def load_scene_folder(path, level: int = 0, require_language: bool = True) -> Sc
         if labels.shape != (len(gaussians),):
             raise SceneDataError(f"{label_path}: {labels.shape} labels for {len(gaussians)} Gaussians in "
                                  f"{root / 'point_cloud.ply'}")
+    elif splat is not None:
+        labels = _scenesplat_labels(splat)
     points = point_labels = None
     if (root / "labels" / "points.ply").is_file():
         points, point_labels = read_labelled_points(root / "labels" / "points.ply")
-    return SceneData(root, gaussians, frames, classes, labels, points, point_labels)
+    instances = splat.labels("instance") if splat is not None and splat.has("instance") else None
+    return SceneData(root, gaussians, frames, classes, labels, points, point_labels, instances)

@@ -58,7 +58,7 @@ from qr_cl.backbone.conv import conv_threads
 from ...render import SelectionCache
 from ...stages import prepare_backward
 from ..process import process_cores
-from ..scenes.folders import load_scene_folder
+from ..scenes.folders import SceneDataError, load_scene_folder
 from ..timing import Stopwatch
 from .config import TrainConfig
 from .network import build_net, load_checkpoint
@@ -94,6 +94,10 @@ class Trainer:
             raise ValueError(f"batch_scenes={cfg.batch_scenes} must be a multiple of the {world} ranks")
         self.cfg, self.rank, self.world = cfg, rank, world
         self.scenes = [load_scene_folder(s, cfg.level) for s in cfg.scenes]
+        frameless = [s.root for s in self.scenes if not s.frames]
+        if frameless:
+            raise SceneDataError(f"{frameless[0]}: no frames to train on (cameras in cameras.json or "
+                                 "transforms_train.json, and language_features/ from qr-cl features)")
         dims = {s.feature_dim for s in self.scenes}
         if len(dims) != 1:
             raise ValueError(f"the scenes' language features disagree in dimension: "

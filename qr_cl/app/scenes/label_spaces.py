@@ -2,7 +2,7 @@
 
 SceneSplat-7K's ScanNet folders (Pointcept-style folders of .npy files) label each Gaussian in
 ScanNet's benchmark id spaces, not in NYU40; :func:`to_nyu40` maps them onto the NYU40 ids of
-:mod:`.metrics` (``labels/gaussian_labels.npy``). Spaces (:data:`SPACES`):
+:mod:`qr_cl.app.evaluation.metrics` (``labels/gaussian_labels.npy``). Spaces (:data:`SPACES`):
 
 - ``"scannet20"`` (``segment20.npy``): train ids 0..19 of the ScanNet20 benchmark classes,
   :data:`SCANNET20_NYU40`;
@@ -10,15 +10,14 @@ ScanNet's benchmark id spaces, not in NYU40; :func:`to_nyu40` maps them onto the
   :data:`SCANNET200_NYU40`;
 - ``"nyu40"``: NYU40 ids 1..40, unchanged.
 
-In every space :data:`IGNORE_INDEX` (-1) is "no label" and stays -1. See docs/label-spaces.md.
+In every space :data:`IGNORE_LABEL` (-1) is "no label" and stays -1. See docs/label-spaces.md.
 """
 from __future__ import annotations
 
 import numpy as np
 
-#: The label of a Gaussian without a class in every space (Pointcept's and SceneSplat's
-#: ``ignore_index``); :func:`to_nyu40` keeps it.
-IGNORE_INDEX = -1
+from ...scene import IGNORE_LABEL
+
 
 #: ScanNet20 train id (index) -> NYU40 id: the NYU40 ids of ScanNet's 20 benchmark classes
 #: (wall, floor, cabinet, bed, chair, sofa, table, door, window, bookshelf, picture, counter, desk,
@@ -89,7 +88,7 @@ SCANNET200_NYU40: tuple[tuple[str, int], ...] = (
     ("calendar", 40), ("poster", 11), ("potted plant", 40), ("luggage", 40), ("mattress", 4),         # 195-199
 )
 
-#: Every space -> {id in the space: its NYU40 id}; :data:`IGNORE_INDEX` is in none of them.
+#: Every space -> {id in the space: its NYU40 id}; :data:`IGNORE_LABEL` is in none of them.
 SPACES: dict[str, dict[int, int]] = {
     "scannet20": dict(enumerate(SCANNET20_NYU40)),
     "scannet200": {i: nyu40 for i, (_, nyu40) in enumerate(SCANNET200_NYU40)},
@@ -106,7 +105,7 @@ def to_nyu40(labels: np.ndarray, space: str) -> np.ndarray:
     """NYU40 ids [N] int64 of ``labels`` [N] or [N,1] (integer ids of ``space``, a key of
     :data:`SPACES`; SceneSplat's label files come in either shape).
 
-    :data:`IGNORE_INDEX` stays :data:`IGNORE_INDEX`. ValueError for an unknown space, non-integer
+    :data:`IGNORE_LABEL` stays :data:`IGNORE_LABEL`. ValueError for an unknown space, non-integer
     labels, another shape, or any other id outside the space (naming the space and the first bad ids).
     """
     if space not in SPACES:
@@ -120,10 +119,10 @@ def to_nyu40(labels: np.ndarray, space: str) -> np.ndarray:
     lut[list(table)] = list(table.values())
     inside = (ids >= 0) & (ids < lut.size)
     nyu40 = np.where(inside, lut[np.where(inside, ids, 0)], 0)
-    bad = (nyu40 == 0) & (ids != IGNORE_INDEX)
+    bad = (nyu40 == 0) & (ids != IGNORE_LABEL)
     if bad.any():
         values, first = np.unique(ids[bad], return_index=True)
         shown = ", ".join(map(str, values[np.argsort(first)][:5].tolist()))
         raise ValueError(f"{space} labels: {int(bad.sum())} ids outside the space "
-                         f"({min(table)}..{max(table)}, {IGNORE_INDEX} = ignore), first {shown}")
-    return np.where(ids == IGNORE_INDEX, IGNORE_INDEX, nyu40)
+                         f"({min(table)}..{max(table)}, {IGNORE_LABEL} = ignore), first {shown}")
+    return np.where(ids == IGNORE_LABEL, IGNORE_LABEL, nyu40)
