@@ -173,3 +173,16 @@ def test_extra_modules_are_named(monkeypatch, capsys):
     monkeypatch.setattr(command, "EXTRA_MODULES", ("scipy", "no_such_module_qrcl"))
     _fails(capsys, cli.main(["features", "x", "--images", "y", "--clip-weights", "a", "--sam-weights", "b"]),
            "no_such_module_qrcl", ".[features]")
+
+
+def test_transforms_frames_name_the_photos(models, tmp_path):
+    """A SceneSplat-style folder has transforms_train.json, no cameras.json: each frame's
+    ``file_path`` names its photo (another extension is fine) and its feature files."""
+    scene, images = drawn_scene(tmp_path, frames=2)
+    (scene / "cameras.json").unlink()
+    frames = [{"file_path": f"images/view_{i}.jpg", "transform_matrix": np.diag([1.0, -1, -1, 1]).tolist()}
+              for i in range(2)]
+    (scene / "transforms_train.json").write_text(json.dumps({"fl_x": 50.0, "w": 64, "h": 48, "frames": frames}))
+    assert run_features(scene, images, models) == 0
+    assert sorted(p.name for p in (scene / "language_features").glob("*.npy")) == [
+        "view_0_f.npy", "view_0_s.npy", "view_1_f.npy", "view_1_s.npy"]

@@ -76,13 +76,15 @@ def test_frames_come_from_transforms_train(tiny_room, tmp_path):
     np.testing.assert_allclose(folder.gaussians.rgb, room.gaussians.rgb, atol=0.5 / 255 + 1e-6)
 
 
-def test_train_eval_and_query_open_a_folder(tiny_room, tmp_path, capsys):
+def test_train_eval_register_and_query_open_a_folder(tiny_room, tmp_path, capsys):
     folder = scenesplat_room(tiny_room, tmp_path / "s", "segment200")
     assert main(["train", str(folder), "--out", str(tmp_path / "run"), "--steps", "2", "--views", "1", "--rays", "64",
                  "--net", "tiny"]) == 0
     assert main(["eval", str(folder), "--checkpoint", str(tmp_path / "run" / "checkpoint.pt"), "--gt", "gaussians",
                  "--out", str(tmp_path / "eval")]) == 0
     assert "mIoU19" in (tmp_path / "eval" / "results.md").read_text()
+    assert main(["register", str(folder), "--out", str(tmp_path / "reg")]) == 0
+    assert np.load(tmp_path / "reg" / "features.npy").shape[0] == len(np.load(folder / "coord.npy"))
     asked = load_query_scene(folder)
     assert len(asked.cameras) == len(asked.data.frames) > 0 and asked.classes is not None
 
