@@ -34,8 +34,6 @@ from .gaussians import Gaussians, SceneFormatError
 
 #: The files every SceneSplat folder has.
 SCENESPLAT_FILES = ("coord", "color", "opacity", "quat", "scale")
-#: Per-Gaussian label files, in the order a folder's labels are preferred.
-SEGMENT_FILES = ("segment20", "segment200", "segment")
 #: The ignore index of the label and instance files (Pointcept's and SceneSplat's ``ignore_index``):
 #: a Gaussian without a class or an instance, in every label space.
 IGNORE_LABEL = -1
@@ -120,7 +118,7 @@ class SceneSplatFolder:
     @functools.cached_property
     def gaussians(self) -> Gaussians:
         """The activated Gaussians of the five files (and sh.npy when present); quaternions whose
-    norm is off 1 by more than float32 rounding are normalised (:class:`Gaussians`)."""
+        norm is off 1 by more than float32 rounding are normalised (:class:`Gaussians`)."""
         means = self._read("coord", (3,))
         sh = self._colour()
         opacity = self._read("opacity", ())
@@ -141,8 +139,8 @@ class SceneSplatFolder:
                          scales.astype(np.float32, copy=False), opacity.astype(np.float32, copy=False), sh)
 
     def labels(self, name: str) -> np.ndarray:
-        """``<name>.npy`` (one of :data:`SEGMENT_FILES` or "instance") as [N] int64; ids below
-        :data:`IGNORE_LABEL` raise."""
+        """``<name>.npy``, a label file (segment20, segment200, segment) or instance, as [N] int64;
+        ids below :data:`IGNORE_LABEL` raise."""
         a = self._load(name)
         if a.dtype.kind == "f":
             a = self._read(name, ())
@@ -154,10 +152,6 @@ class SceneSplatFolder:
         if a.size and a.min() < IGNORE_LABEL:
             raise SceneFormatError(f"{self.root / f'{name}.npy'}: label {a.min()} is below the ignore index {IGNORE_LABEL}")
         return a
-
-    def segment_file(self) -> str | None:
-        """The first of :data:`SEGMENT_FILES` the folder has, or None."""
-        return next((name for name in SEGMENT_FILES if self.has(name)), None)
 
     def language_features(self) -> tuple[np.ndarray, np.ndarray]:
         """``lang_feat`` [N,D] float32 and ``valid_feat_mask`` [N] bool (all True when absent)."""
@@ -171,7 +165,7 @@ def _check_quat_order(path: Path, quats: np.ndarray) -> None:
     """Refuse quaternions that are plainly x,y,z,w: a sign-canonical writer makes one component
     >= 0 in every row; if that is the last one while the first takes both signs, the real part
     is last. (Unit quaternions from 3DGS training have no such sign pattern and pass.)"""
-    if len(quats) > 16 and (quats[:, 3] >= 0).all() and (quats[:, 0] < 0).any() and not (quats[:, 0] >= 0).all():
+    if len(quats) > 16 and (quats[:, 3] >= 0).all() and (quats[:, 0] < 0).any():
         raise SceneFormatError(f"{path}: the last component is >= 0 in every row and the first takes both signs: "
                                "x,y,z,w order? SceneSplat's quaternions are w,x,y,z")
 

@@ -100,7 +100,6 @@ def test_labels_and_features_are_read_when_asked(tmp_path):
     scenesplat_files(tmp_path / "s", g, segment20=seg[:, None].astype(np.int32), instance=seg.astype(np.int16),
                      lang_feat=np.ones((50, 8), np.float16), valid_feat_mask=(seg >= 0).astype(np.uint8))
     folder = SceneSplatFolder(tmp_path / "s")
-    assert folder.segment_file() == "segment20"
     np.testing.assert_array_equal(folder.labels("segment20"), seg)
     assert folder.labels("instance").dtype == np.int64
     feats, valid = folder.language_features()

@@ -95,8 +95,8 @@ SPACES: dict[str, dict[int, int]] = {
     "nyu40": {c: c for c in range(1, 41)},
 }
 
-#: SceneSplat folder label file (stem of ``<stem>.npy``; ``qr_cl.scene.scenesplat.SEGMENT_FILES``)
-#: -> the space of its ids. A generic ``segment.npy`` (other datasets) is not here: its space
+#: SceneSplat folder label file (stem of ``<stem>.npy``) -> the space of its ids, in the order a
+#: folder's files are preferred. A generic ``segment.npy`` (other datasets) is not here: its space
 #: depends on the dataset, so the caller names it.
 SEGMENT_SPACES: dict[str, str] = {"segment20": "scannet20", "segment200": "scannet200"}
 
