@@ -194,7 +194,7 @@ def test_image(data: Path | None) -> tuple[np.ndarray, str]:
     if fox is not None and fox.is_file():
         from PIL import Image
 
-        from qr_cl.app.cli import render_views
+        from qr_cl.app.rendering.command import render_views
         from qr_cl.scene import load_ply, orbit_cameras
         g = load_ply(fox)
         out = Path(tempfile.mkdtemp())

@@ -1,13 +1,18 @@
-"""The package's import graph, read with ast (nothing imported): no circle among the modules of
-qr_cl/render (top-level and function-local imports alike), and no module taking a name of another
-module that is private (a leading underscore) or, across packages, missing from the ``__all__``
-of the package holding it."""
+"""The package's import graph, read with ast (nothing imported; top-level and function-local
+imports alike): the layers' arrow rule of docs/design.md (a module imports its own layer or the
+layers below, never one above), no circle among the modules of any layer, and no module taking a
+name of another module that is private (a leading underscore) or, across packages, missing from
+the ``__all__`` of the package holding it."""
 from __future__ import annotations
 
 import ast
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
+#: The layers, bottom to top (docs/design.md, "Data flow and layers").
+LAYERS = ("qr_cl.runtime", "qr_cl.scene", "qr_cl.stages", "qr_cl.render", "qr_cl.backbone", "qr_cl.app")
 #: Where each package's sources lie (qr_cl.backbone is installed from backbone/, setup.cfg).
 SOURCES = {"qr_cl": ROOT / "qr_cl", "qr_cl.backbone": ROOT / "backbone"}
 
@@ -102,9 +107,42 @@ def private_imports(mods: dict[str, Path], importers: dict[str, Path]) -> list[s
     return bad
 
 
-def test_render_has_no_import_circle():
-    found = cycles(edges(modules(), "qr_cl.render"))
-    assert not found, "import circles in qr_cl/render: " + "; ".join(" -> ".join(c) for c in found)
+def layer(module: str) -> int | None:
+    """The position in :data:`LAYERS` of the layer holding ``module`` (None: the top package)."""
+    return next((i for i, name in enumerate(LAYERS) if module == name or module.startswith(name + ".")), None)
+
+
+def upward_imports(mods: dict[str, Path]) -> list[tuple[str, int, str]]:
+    """(importer, line, module) of each import of a module of a higher layer than the importer's."""
+    bad = []
+    for m, path in mods.items():
+        for line, target, names in imports(m, path):
+            for t in [target, *(f"{target}.{n}" for n in names)]:
+                if t in mods and layer(m) is not None and (layer(t) or 0) > layer(m):
+                    bad.append((m, line, t))
+    return bad
+
+
+def test_every_module_is_in_a_layer():
+    assert [m for m in modules() if layer(m) is None] == ["qr_cl"]
+
+
+def test_no_layer_imports_a_layer_above_it():
+    bad = upward_imports(modules())
+    assert not bad, "imports of a higher layer:\n  " + "\n  ".join(f"{m}:{line} {t}" for m, line, t in bad)
+
+
+def test_the_arrow_rule_catches_an_upward_import(tmp_path):
+    module = tmp_path / "upward.py"
+    module.write_text("def f():\n    from ..render import rasterize\n")
+    found = upward_imports({**modules(), "qr_cl.scene.upward": module})
+    assert found == [("qr_cl.scene.upward", 2, "qr_cl.render"), ("qr_cl.scene.upward", 2, "qr_cl.render.rasterize")]
+
+
+@pytest.mark.parametrize("package", LAYERS)
+def test_no_import_circle_in_a_layer(package):
+    found = cycles(edges(modules(), package))
+    assert not found, f"import circles in {package}: " + "; ".join(" -> ".join(c) for c in found)
 
 
 def test_modules_import_only_public_names():

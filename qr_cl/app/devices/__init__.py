@@ -1,0 +1,1 @@
+"""The OpenCL devices qr-cl can use: the ``qr-cl devices`` command (:mod:`.command`)."""
