@@ -66,6 +66,16 @@ static inline void blend_batch(__global float *image, __global const ROW_T *feat
     }
 }
 
+/* A ray's walk state between walk windows, its fields in the slots the VSTATE_* names give
+   (qr_cl.runtime.VolumeStateLayout); the unused slot is 0. */
+static inline float4 volume_state(float T, float depth_sum, int done) {
+    float4 st = (float4)(0.f);
+    st.VSTATE_T = T;
+    st.VSTATE_DEPTH_SUM = depth_sum;
+    st.VSTATE_DONE = done ? 1.f : 0.f;
+    return st;
+}
+
 /* alpha[p] = 1 - T and depth[p] = the expected depth (0 where nothing was hit) of a finished ray. */
 static inline void finish_pixel(int p, float T, float depth_sum, __global float *alpha, __global float *depth) {
     alpha[p] = 1.f - T;
@@ -88,7 +98,8 @@ __kernel void vrender(VRENDER_ARGS) {
         for (int l = 0; l < TILE; l++)
             if (LANE_I(row, l) >= 0) {
                 const float4 st = state_in[LANE_I(row, l)];
-                LANE(T, l) = st.x; LANE(depth_sum, l) = st.y; LANE_I(done, l) = st.z != 0.f ? -1 : 0;
+                LANE(T, l) = st.VSTATE_T; LANE(depth_sum, l) = st.VSTATE_DEPTH_SUM;
+                LANE_I(done, l) = st.VSTATE_DONE != 0.f ? -1 : 0;
             }
     VOLUME_WALK(from, to, px, py, row, T, done,
         depth_sum += w * s.SPLAT_DEPTH;
@@ -106,7 +117,7 @@ __kernel void vrender(VRENDER_ARGS) {
         blend_batch(image, features, cstride, batch_id, batch_w, count, row, init, 0, (lanef)(0.f), background);
         for (int l = 0; l < TILE; l++)
             if (LANE_I(row, l) >= 0)
-                state_out[LANE_I(row, l)] = (float4)(LANE(T, l), LANE(depth_sum, l), LANE_I(done, l) ? 1.f : 0.f, 0.f);
+                state_out[LANE_I(row, l)] = volume_state(LANE(T, l), LANE(depth_sum, l), LANE_I(done, l));
         return;
     }
     blend_batch(image, features, cstride, batch_id, batch_w, count, row, init, stream,
@@ -127,7 +138,7 @@ __kernel void tile_vrender(VRENDER_ARGS) {
     int done = p < 0;
     if (!first && p >= 0) {
         const float4 st = state_in[p];
-        T = st.x; depth_sum = st.y; done = st.z != 0.f;
+        T = st.VSTATE_T; depth_sum = st.VSTATE_DEPTH_SUM; done = st.VSTATE_DONE != 0.f;
     }
     __global float *out = image + (size_t)max(p, 0) * cstride + c0;
     vec_t acc[NV];
@@ -143,7 +154,7 @@ __kernel void tile_vrender(VRENDER_ARGS) {
     if (!last) {
         #pragma unroll
         for (int v = 0; v < NV; v++) VSTORE(acc[v], v, out);
-        if (writes_pixel) state_out[p] = (float4)(T, depth_sum, done ? 1.f : 0.f, 0.f);
+        if (writes_pixel) state_out[p] = volume_state(T, depth_sum, done);
         return;
     }
     const float bg = use_bg ? T : 0.f;

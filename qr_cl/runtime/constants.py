@@ -106,6 +106,25 @@ WALK_STATE_INTS = 4
 #: The walk state's layout (see :class:`WalkStateLayout`).
 WALK_STATE = WalkStateLayout()
 
+class VolumeStateLayout(NamedTuple):
+    """Where the fused V-Render's walk waits between walk windows (kernels/vrender.cl): a slot of
+    the ray's float4 for each field. The kernels get them as swizzles by :meth:`defines`
+    (``st.VSTATE_DEPTH_SUM`` is slot 1)."""
+
+    t: int = 0                       # T, the transmittance of the walk
+    depth_sum: int = 1               # the sum of w_i z_i so far (the expected depth's numerator)
+    done: int = 2                    # 1 once the ray stopped, else 0
+
+    def defines(self) -> dict[str, str]:
+        """``VSTATE_<FIELD>`` -> the OpenCL C swizzle of its slot (``s1``)."""
+        return {f"VSTATE_{name.upper()}": f"s{slot:x}" for name, slot in self._asdict().items()}
+
+
+#: Floats (an OpenCL float4) of a ray's fused V-Render walk state.
+VOLUME_STATE_FLOATS = 4
+#: The fused V-Render's walk state layout (see :class:`VolumeStateLayout`).
+VOLUME_STATE = VolumeStateLayout()
+
 #: A Gaussian's footprint (project.cl writes it, the binning passes read it): 16 int32 (an OpenCL
 #: int16, 64 bytes) holding its tile rectangle [x0, y0, x1, y1) and, from int FOOTPRINT_SPANS.start
 #: on, the tiles [x0, x1) of up to SPAN_ROWS of its tile rows as ushorts (x0 - rect x0) |
@@ -142,6 +161,7 @@ def _kernel_constants() -> dict[str, str]:
         out.update({f"{name}_{i}": _float_literal(v) for i, v in enumerate(values)})
     out.update(SPLAT.defines())
     out.update(WALK_STATE.defines())
+    out.update(VOLUME_STATE.defines())
     out.update({"FOOTPRINT_RECT": str(FOOTPRINT_RECT.start), "FOOTPRINT_SPANS": str(FOOTPRINT_SPANS.start),
                 "SPAN_ROWS": str(SPAN_ROWS)})
     return out

@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pyopencl.array as cla
 
-from ..runtime import (BLOCK_GROUP, TILE, channel_layout, check_buffer, device_empty, host_empty, padded_vector,
-                       shared_array, streamed, to_device, walk_windows)
+from ..runtime import (BLOCK_GROUP, TILE, VOLUME_STATE_FLOATS, channel_layout, check_buffer, device_empty, host_empty,
+                       padded_vector, shared_array, streamed, to_device, walk_windows)
 from .binning import RasterPlan
 from .blend import row_defines
 
@@ -57,7 +57,7 @@ def render_fused(plan: RasterPlan, features: cla.Array, channels: int,
         size, kernel, local = plan.tiles_x * plan.tiles_y * TILE, "vrender", BLOCK_GROUP
         loops = 2 * TILE * (cstride // vw) + TILE + 4
     windows = walk_windows(rt.loop_limit, plan.longest_list if rt.loop_limit else 0, loops)
-    states = [device_empty(rt, (h * w if len(windows) > 1 else 1) * 4, np.float32) for _ in range(2)]
+    states = [device_empty(rt, (h * w if len(windows) > 1 else 1) * VOLUME_STATE_FLOATS, np.float32) for _ in range(2)]
     with shared_array(rt, image, "rw" if accumulate or len(windows) > 1 else "w") as image_dev:
         for i, (walk_from, walk_to) in enumerate(windows):
             rt.launch(kernel, size, defines={"VW": vw, "NV": nv, **row_defines(features)}, local_size=local,

@@ -1,14 +1,15 @@
 """The splat, footprint and walk-state layouts are named once (qr_cl.runtime.constants) and the
 kernels follow the names: a splat built from named fields comes back from project.cl field by
-field, and so it does when the build is given another layout; selections walked in windows keep
-their bytes when the walk state is given another layout."""
+field, and so it does when the build is given another layout; selections and fused V-Render
+images walked in windows keep their bytes when the walk states are given other layouts."""
 import numpy as np
 
 from qr_cl.render import rasterize_plan
 from qr_cl.runtime import (ALPHA_MIN, FOOTPRINT_INTS, FOOTPRINT_RECT, KERNEL_CONSTANTS, SAMPLERS, SPLAT, SPLAT_FLOATS,
-                           WALK_STATE, WALK_STATE_FLOATS, WALK_STATE_INTS, Runtime, SplatLayout, WalkStateLayout,
-                           context, device_empty, runtime, to_device)
-from qr_cl.stages import project_ref, select
+                           VOLUME_STATE, VOLUME_STATE_FLOATS, WALK_STATE, WALK_STATE_FLOATS, WALK_STATE_INTS, Runtime,
+                           SplatLayout, VolumeStateLayout, WalkStateLayout, channel_layout, context, device_empty,
+                           padded_rows, runtime, to_device)
+from qr_cl.stages import project_ref, render_fused, select
 from qr_cl.stages.project import lane_items, project, tile_grid
 from tests.twins import H, W, origin_camera
 
@@ -16,6 +17,8 @@ from tests.twins import H, W, origin_camera
 MOVED = SplatLayout(mean=slice(6, 8), conic=slice(3, 6), opacity=2, depth=0, sigma_max=1, absgrad=slice(0, 2))
 #: Every field of the walk state in other slots than WALK_STATE's.
 MOVED_WALK = WalkStateLayout(t=7, tq=3, mu=6, sigma=0, t_end=4, sum=1, sum_sq=5, used=2, k=3, n=0, done=1)
+#: Every field of the fused V-Render's state in other slots than VOLUME_STATE's.
+MOVED_VOLUME = VolumeStateLayout(t=3, depth_sum=0, done=1)
 
 
 def _scene(n: int = 40, seed: int = 0):
@@ -149,3 +152,45 @@ def test_selections_follow_another_walk_state_layout(random_scene, monkeypatch):
         assert {"tile_quantile" if gpu else "select_quantile", "tile_stratified" if gpu else "select_stratified"} \
             <= set(resumed), resumed
         assert [k for k in want if want[k].tobytes() != got[k].tobytes()] == [], gpu
+
+
+def test_volume_state_names_every_slot_once():
+    for layout in (VOLUME_STATE, MOVED_VOLUME):
+        assert len(set(layout)) == len(layout) and set(layout) <= set(range(VOLUME_STATE_FLOATS))
+    assert VOLUME_STATE.defines()["VSTATE_DEPTH_SUM"] == f"s{VOLUME_STATE.depth_sum:x}"
+
+
+def _fused(rt: Runtime, scene, channels: int = 5) -> list[np.ndarray]:
+    """The fused V-Render's image, alpha and depth of ``scene`` with seeded features, on ``rt``."""
+    m, q, s, o, v, K, w, h = scene
+    plan = rasterize_plan(m, q, s, o, v, K, w, h, rt=rt)
+    feats = np.random.default_rng(2).random((len(m), channels)).astype(np.float32)
+    table = to_device(rt, padded_rows(feats, channel_layout(channels, rt.gpu_shaped)[2]))
+    return [a.copy() for a in render_fused(plan, table, channels)]
+
+
+def test_fused_vrender_follows_another_volume_state_layout(random_scene, monkeypatch):
+    """The fused V-Render walked in windows (block and tile walks) by kernels built with
+    MOVED_VOLUME gives the bytes of the default build's walk in one launch, and it did resume."""
+    base = Runtime(runtime().device)
+    want = {}
+    for gpu in (False, True):
+        base.gpu_shaped = gpu
+        want[gpu] = _fused(base, random_scene)
+    monkeypatch.setattr(context, "KERNEL_CONSTANTS", {**KERNEL_CONSTANTS, **MOVED_VOLUME.defines()})
+    rt = Runtime(runtime().device)                 # its programs are built with MOVED_VOLUME
+    rt.loop_limit = 64
+    resumed = []
+    launch = Runtime.launch
+
+    def counted(self, name, *args, walk_from=None, **kwargs):
+        if walk_from:
+            resumed.append(name)
+        launch(self, name, *args, **({} if walk_from is None else {"walk_from": walk_from}), **kwargs)
+    monkeypatch.setattr(Runtime, "launch", counted)
+    for gpu in (False, True):
+        rt.gpu_shaped = gpu
+        resumed.clear()
+        got = _fused(rt, random_scene)
+        assert ("tile_vrender" if gpu else "vrender") in resumed, resumed
+        assert [i for i, (a, b) in enumerate(zip(want[gpu], got)) if a.tobytes() != b.tobytes()] == [], gpu
