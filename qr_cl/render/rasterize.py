@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..runtime import Runtime
+from ..runtime import DEFAULTS, Runtime
 from ..stages import RasterPlan, check_pixels, check_sampler
 from .autograd import View
 from .cache import SelectionCache
@@ -64,7 +64,7 @@ def empty_meta() -> dict:
 
 
 def rasterize(means, quats, scales, opacities, features, viewmat, K, width: int, height: int,
-              sampler: str = "volume", k: int = 40, sh_degree: int | None = None,
+              sampler: str = DEFAULTS.rasterize_sampler, k: int = DEFAULTS.k, sh_degree: int | None = None,
               near: float = 0.01, far: float = 1e10, background=None, pixels=None,
               cache: SelectionCache | None = None):
     """Render C-dim features (or RGB from SH) of 3D Gaussians for one pinhole camera through a

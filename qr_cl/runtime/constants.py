@@ -36,6 +36,21 @@ WALK_ALL = 2**31 - 1
 SAMPLERS = ("volume", "quantile", "topk", "stratified")
 
 
+class Defaults(NamedTuple):
+    """The defaults every command and the Python API read (docs/design.md, "Defaults"), defined
+    here once."""
+
+    sampler: str = "quantile"        # features render through Q-Render (the paper's GS-Net setting)
+    k: int = 40                      # its K, and top-K's / Stratified-K's
+    rasterize_sampler: str = "volume"  # rasterize / gsplat's rasterization: every Gaussian, as 3DGS
+    width: int = 640                 # px of a picture from orbit cameras
+    height: int = 480
+
+
+#: The defaults (see :class:`Defaults`).
+DEFAULTS = Defaults()
+
+
 class SplatLayout(NamedTuple):
     """Where the fields of a Gaussian's splat lie in its float8 (slot numbers): the splat
     project.cl writes and every walk reads, and its gradient (``d_splats``, the same slots: d mean,

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..runtime.constants import DEFAULTS
 from .gaussians import SceneFormatError
 
 # Blender/NeRF cameras look down -z with +y up; flipping y and z gives the OpenCV convention.
@@ -195,7 +196,7 @@ def look_at(eye, target, up, fx: float, fy: float, width: int, height: int, name
     return Camera(_from_camera_to_world(c2w), fx, fy, width / 2, height / 2, width, height, name)
 
 
-def orbit_cameras(means: np.ndarray, n: int, width: int = 640, height: int = 480,
+def orbit_cameras(means: np.ndarray, n: int, width: int = DEFAULTS.width, height: int = DEFAULTS.height,
                   fov_x_deg: float = 50.0, elevation_deg: float = 25.0, up_axis: int = 2,
                   distance_scale: float = 1.0) -> list[Camera]:
     """``n`` cameras on a circle around a point cloud ``means`` [N,3], all looking at its centre.

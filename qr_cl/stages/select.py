@@ -24,7 +24,7 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cla
 
-from ..runtime import (BLOCK_GROUP, SAMPLERS, TILE, WALK_STATE_FLOATS, WALK_STATE_INTS, Runtime, check_buffer,
+from ..runtime import (BLOCK_GROUP, DEFAULTS, SAMPLERS, TILE, WALK_STATE_FLOATS, WALK_STATE_INTS, Runtime, check_buffer,
                        device_empty, device_zeros, exclusive_scan, last_value, to_device, walk_windows)
 from .binning import SORT_BYTES_PER_KEY, RasterPlan
 
@@ -251,7 +251,7 @@ class SelectionKernel:
                 walk.launch("select_stratified", defines, **outputs, **blend_args, **{"pass": pass_})
 
 
-def select(plan: RasterPlan, sampler: str = "quantile", k: int = 40, pixels=None) -> Selection:
+def select(plan: RasterPlan, sampler: str = DEFAULTS.sampler, k: int = DEFAULTS.k, pixels=None) -> Selection:
     """Run the selection kernel of ``sampler`` ("volume", "quantile", "topk" or "stratified") with
     K = ``k`` (ignored by volume) for the whole image or the rays ``pixels`` [P,2] (x, y) in px.
 
@@ -263,7 +263,7 @@ def select(plan: RasterPlan, sampler: str = "quantile", k: int = 40, pixels=None
     return selection
 
 
-def deferred_select(plan: RasterPlan, sampler: str = "quantile", k: int = 40,
+def deferred_select(plan: RasterPlan, sampler: str = DEFAULTS.sampler, k: int = DEFAULTS.k,
                     pixels=None) -> tuple[Selection, SelectionKernel | None]:
     """:func:`select`, its kernel left to the caller where a blend can be fused into it: (the
     Selection, its :class:`SelectionKernel` not yet enqueued) for the K samplers on CPU-shaped

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ...runtime import DEFAULTS
 from ...scene import Gaussians, quat_to_rotmat
 from ...stages import select
 from ..scenes.folders import SceneData
@@ -59,7 +60,7 @@ def ground_truth(scene: SceneData, source: str = "auto", k: int = 5, max_mahalan
                      "labels/gaussian_labels.npy)")
 
 
-def reached_gaussians(scene: SceneData, sampler: str = "quantile", k: int = 40) -> np.ndarray:
+def reached_gaussians(scene: SceneData, sampler: str = DEFAULTS.sampler, k: int = DEFAULTS.k) -> np.ndarray:
     """[N] bool: the Gaussians that ``sampler``'s selection (``k``) of some pixel of some view of
     ``scene`` holds, i.e. those its training rays can reach. A per-scene model (the free-feature
     fit) learns only these; GS-Net predicts every Gaussian from its neighbourhood."""

@@ -16,7 +16,7 @@ import torch
 from matplotlib import colormaps
 
 from ...render import rasterize
-from ...runtime import SH_C0
+from ...runtime import DEFAULTS, SH_C0
 from ...scene import Camera, Gaussians, orbit_cameras
 from ..images import plt
 from ..scenes.folders import ClassTable, SceneData, unit_rows
@@ -36,14 +36,14 @@ def _palette(ids) -> dict[int, np.ndarray]:
     return {int(c): np.asarray(cmap(i % 20)[:3], np.float32) for i, c in enumerate(sorted(ids))}
 
 
-def _render(scene: SceneData, values: np.ndarray, cam: Camera, sampler: str = "quantile",
+def _render(scene: SceneData, values: np.ndarray, cam: Camera, sampler: str = DEFAULTS.sampler,
             visible: np.ndarray | None = None) -> np.ndarray:
     """Full image [H,W,C] of per-Gaussian ``values`` [N,C] seen by ``cam`` (only the Gaussians
     where ``visible`` [N] bool is set, if given)."""
     g = scene.gaussians
     opacities = g.opacities if visible is None else np.where(visible, g.opacities, 0).astype(np.float32)
     img, _, _ = rasterize(g.means, g.quats, g.scales, opacities, np.ascontiguousarray(values, np.float32),
-                          cam.viewmat, cam.K, cam.width, cam.height, sampler=sampler, k=40)
+                          cam.viewmat, cam.K, cam.width, cam.height, sampler=sampler, k=DEFAULTS.k)
     return img.numpy()
 
 

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-NOISE_K = 40                          # the noise table's Q-Render K (paper: "Sensitivity under Gaussian Perturbation")
+from ...runtime import DEFAULTS
+
+NOISE_K = DEFAULTS.k                  # the noise table's Q-Render K (paper: "Sensitivity under Gaussian Perturbation")
 
 LABELS = {"volume": "V-Render", "quantile": "Q-Render", "topk": "top-K", "stratified": "Stratified-K"}
 

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from ...runtime import SAMPLERS
+from ...runtime import DEFAULTS, SAMPLERS
 from ...scene import Camera, orbit_cameras
 from ..arguments import AXES, nonnegative_int, positive_int
 from ..features.classes import recorded_encoder
@@ -54,9 +54,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                                  f"scene file: {DEFAULT_VIEWS})")
     parser.add_argument("--width", type=positive_int, help="image width in px (rescales cameras; orbit default 640)")
     parser.add_argument("--up-axis", type=int, choices=AXES, default=2, help="world up axis of orbits (2 = z, 1 = y)")
-    parser.add_argument("--sampler", choices=SAMPLERS, default="quantile",
+    parser.add_argument("--sampler", choices=SAMPLERS, default=DEFAULTS.sampler,
                         help="renderer of the heatmaps (default quantile)")
-    parser.add_argument("-k", type=positive_int, default=40, help="K of the sampler (default 40)")
+    parser.add_argument("-k", type=positive_int, default=DEFAULTS.k, help=f"K of the sampler (default {DEFAULTS.k})")
     parser.add_argument("--clip-weights", help="local OpenCLIP weights file: encodes text the tables lack "
                                                "(needs pip install 'qr-cl[clip]'; nothing is downloaded)")
     parser.add_argument("--clip-model", default="ViT-B-32",
@@ -76,7 +76,7 @@ def query_cameras(scene: QueryScene, views: list[int] | None, orbit: int | None,
     :data:`DEFAULT_VIEWS` evenly spaced; prefix the index, "002"), rescaled to ``width`` px when
     given. QueryError for an index out of range."""
     if orbit is not None or not scene.cameras:
-        w = width or 640
+        w = width or DEFAULTS.width
         cams = orbit_cameras(scene.gaussians.means, orbit if orbit is not None else DEFAULT_VIEWS, w,
                              round(w * 3 / 4), up_axis=up_axis)
         return [(f"orbit{i:03d}", c) for i, c in enumerate(cams)]

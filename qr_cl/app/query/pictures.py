@@ -13,6 +13,7 @@ import numpy as np
 from matplotlib import colormaps
 
 from ...render import rasterize, render_volume_fused
+from ...runtime import DEFAULTS
 from ...scene import Camera, Gaussians, save_ply
 
 #: The colour map of scores (low = dark blue, high = dark red).
@@ -36,8 +37,8 @@ def render_rgb(gaussians: Gaussians, camera: Camera) -> tuple[np.ndarray, np.nda
     return image.numpy(), alpha.numpy()[..., 0]
 
 
-def render_values(gaussians: Gaussians, values: np.ndarray, camera: Camera, sampler: str = "quantile",
-                  k: int = 40) -> tuple[np.ndarray, np.ndarray]:
+def render_values(gaussians: Gaussians, values: np.ndarray, camera: Camera, sampler: str = DEFAULTS.sampler,
+                  k: int = DEFAULTS.k) -> tuple[np.ndarray, np.ndarray]:
     """(image [H,W,C], the sampler's alpha [H,W]) of per-Gaussian ``values`` [N,C] rendered
     through ``sampler`` with ``k`` (:func:`qr_cl.rasterize`), float32."""
     image, alpha, _ = rasterize(gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities,

@@ -8,6 +8,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from ...render import render_volume_fused
+from ...runtime import DEFAULTS
 from ...scene import Camera, Gaussians, load_cameras, load_layout_instance, load_scene, orbit_cameras
 from ..arguments import AXES, nonnegative_int, positive_int
 from ..timing import Stopwatch
@@ -19,8 +20,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     views = parser.add_mutually_exclusive_group()
     views.add_argument("--cameras", help="3DGS cameras.json, V3DG layout or NeRF/nerfstudio transforms(_train).json")
     views.add_argument("--orbit", type=positive_int, default=8, help="number of orbit cameras (default 8)")
-    parser.add_argument("--width", type=positive_int, help="image width in px (orbit default 640; rescales --cameras)")
-    parser.add_argument("--height", type=positive_int, help="image height in px (orbit default 480)")
+    parser.add_argument("--width", type=positive_int, help=f"image width in px (orbit default {DEFAULTS.width}; rescales --cameras)")
+    parser.add_argument("--height", type=positive_int, help=f"image height in px (orbit default {DEFAULTS.height})")
     parser.add_argument("--up-axis", type=int, choices=AXES, default=2, help="world up axis for orbits (2 = z, 1 = y)")
     parser.add_argument("--sh-degree", type=nonnegative_int, help="use at most this SH degree (default: the file's)")
     parser.add_argument("--out", required=True, help="output folder")
@@ -60,7 +61,7 @@ def run(args: argparse.Namespace) -> int:
             cameras = [c.resized(args.width, args.height or round(c.height * args.width / c.width))
                        for c in cameras]
     else:
-        cameras = orbit_cameras(gaussians.means, args.orbit, args.width or 640, args.height or 480,
+        cameras = orbit_cameras(gaussians.means, args.orbit, args.width or DEFAULTS.width, args.height or DEFAULTS.height,
                                 up_axis=args.up_axis)
     seconds = render_views(gaussians, cameras, Path(args.out), args.sh_degree)
     print(f"rendered {len(cameras)} views of {len(gaussians)} Gaussians in {seconds:.1f} s -> {args.out}")

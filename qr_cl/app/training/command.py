@@ -31,7 +31,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--views", type=positive_int, default=d.views, help="views per scene per step (default 4)")
     parser.add_argument("--rays", type=positive_int, default=d.rays, help="rays per view (default 2048)")
     parser.add_argument("--sampler", choices=SAMPLERS, default=d.sampler, help="feature renderer (default quantile)")
-    parser.add_argument("-k", type=positive_int, default=d.k, help="K of quantile/topk (default 40)")
+    parser.add_argument("-k", type=positive_int, default=d.k, help=f"K of quantile/topk (default {d.k})")
     parser.add_argument("--lr", type=positive_float, default=d.lr, help="Adam learning rate (default 1e-2)")
     parser.add_argument("--temperature", type=positive_float, default=d.temperature, help="loss temperature (default 0.1)")
     parser.add_argument("--grid-size", type=positive_float, default=d.grid_size, help="voxel size, scene units (default 0.1)")

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from ...runtime import SAMPLERS
+from ...runtime import DEFAULTS, SAMPLERS
 from .network import NETS
 
 
@@ -17,8 +17,8 @@ class TrainConfig:
     batch_scenes: int = 1
     views: int = 4
     rays: int = 2048
-    sampler: str = "quantile"
-    k: int = 40
+    sampler: str = DEFAULTS.sampler
+    k: int = DEFAULTS.k
     lr: float = 1e-2                    # chosen by experiment on the 3dgs rooms (docs/design.md, "GS-Net's defaults")
     temperature: float = 0.1
     grid_size: float = 0.1

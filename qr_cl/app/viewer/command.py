@@ -15,7 +15,7 @@ import argparse
 import errno
 import sys
 
-from ...runtime import SAMPLERS
+from ...runtime import DEFAULTS, SAMPLERS
 from ..arguments import AXES, nonnegative_int, port_number, positive_int
 from ..process import cap_kernel_threads
 from ..query.relevancy import METHODS
@@ -40,15 +40,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--port", type=port_number, default=8000, help="port on --host (default 8000; 0 = any free one)")
     parser.add_argument("--host", default="127.0.0.1",
                         help="address to serve on (default 127.0.0.1, this machine only)")
-    parser.add_argument("--width", type=positive_int, default=640, help="full frame width, px (default 640)")
+    parser.add_argument("--width", type=positive_int, default=DEFAULTS.width,
+                        help=f"full frame width, px (default {DEFAULTS.width})")
     parser.add_argument("--height", type=positive_int, default=480, help="full frame height, px (default 480)")
     parser.add_argument("--frame-ms", type=float, default=TARGET_MS,
                         help=f"render time per frame (ms) to keep while the camera moves; frames shrink "
                              f"to fit it (default {TARGET_MS})")
     parser.add_argument("--up-axis", type=int, choices=AXES, default=2,
                         help="world up axis for a scene without cameras (2 = z, 1 = y)")
-    parser.add_argument("--sampler", choices=SAMPLERS, default="quantile", help="initial sampler of the feature modes")
-    parser.add_argument("-k", type=positive_int, default=40, help="initial K (default 40)")
+    parser.add_argument("--sampler", choices=SAMPLERS, default=DEFAULTS.sampler, help="initial sampler of the feature modes")
+    parser.add_argument("-k", type=positive_int, default=DEFAULTS.k, help=f"initial K (default {DEFAULTS.k})")
     parser.add_argument("--score", choices=METHODS, default="relevancy", help="relevancy (default) or cosine")
     parser.add_argument("--clip-weights", help="local OpenCLIP weights file for arbitrary query text (qr-cl[clip])")
     parser.add_argument("--clip-model", default="ViT-B-32", help="OpenCLIP architecture (default ViT-B-32)")

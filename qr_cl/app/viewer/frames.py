@@ -19,7 +19,7 @@ import numpy as np
 import torch
 from matplotlib import colormaps
 
-from ...runtime import SAMPLERS
+from ...runtime import DEFAULTS, SAMPLERS
 from ...scene import Camera, look_at
 from ..evaluation.metrics import UNLABELLED
 from ..evaluation.scoring import predict
@@ -50,8 +50,8 @@ class FrameRequest:
     height: int
     mode: str = "rgb"
     query: str = ""
-    sampler: str = "quantile"
-    k: int = 40
+    sampler: str = DEFAULTS.sampler
+    k: int = DEFAULTS.k
 
     def camera(self) -> Camera:
         """The pinhole camera of this request (square pixels, centred principal point)."""

@@ -24,7 +24,7 @@ from urllib.parse import parse_qs, urlparse
 import numpy as np
 from matplotlib.image import imsave
 
-from ...runtime import SAMPLERS
+from ...runtime import DEFAULTS, SAMPLERS
 from ..query.text import QueryError, UnknownQueryError
 from .frames import FrameRenderer, FrameRequest
 from .views import scene_radius, scene_views
@@ -80,7 +80,7 @@ def parse_frame_request(query: str) -> FrameRequest:
             raise QueryError(f"{name}={params[name][0]!r}: not a {kind.__name__}") from None
     request = FrameRequest(_vector(params, "eye"), _vector(params, "target"), _vector(params, "up"),
                            one("fov_y", float), one("width", int), one("height", int), one("mode", str, "rgb"),
-                           one("query", str, ""), one("sampler", str, "quantile"), one("k", int, 40))
+                           one("query", str, ""), one("sampler", str, DEFAULTS.sampler), one("k", int, DEFAULTS.k))
     request.check()
     return request
 
@@ -90,8 +90,8 @@ class ViewerServer(ThreadingHTTPServer):
 
     daemon_threads = True
 
-    def __init__(self, address: tuple[str, int], renderer: FrameRenderer, view: dict, k: int = 40,
-                 sampler: str = "quantile"):
+    def __init__(self, address: tuple[str, int], renderer: FrameRenderer, view: dict, k: int = DEFAULTS.k,
+                 sampler: str = DEFAULTS.sampler):
         self.renderer, self.view, self.k, self.sampler = renderer, view, k, sampler
         super().__init__(address, ViewerHandler)
 
