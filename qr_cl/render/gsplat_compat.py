@@ -354,9 +354,9 @@ def _plan_of_meta(means2d: torch.Tensor, conics: torch.Tensor, opacities: torch.
     splats[:rows, SPLAT.opacity] = opacities.detach().cpu().numpy()
     with np.errstate(divide="ignore", invalid="ignore"):
         splats[:, SPLAT.sigma_max] = np.log(splats[:, SPLAT.opacity] / ALPHA_MIN)   # as project.cl
-    return RasterPlan(rt, width, height, to_device(rt, splats), device_zeros(rt, (len(splats), 2), np.int32),
-                      to_device(rt, ranges, np.int32), to_device(rt, ids if len(ids) else np.zeros(1), np.int32),
-                      len(ids))
+    return RasterPlan(runtime=rt, width=width, height=height, splats=to_device(rt, splats),
+                      radii=device_zeros(rt, (len(splats), 2), np.int32), ranges=to_device(rt, ranges, np.int32),
+                      ids=to_device(rt, ids if len(ids) else np.zeros(1), np.int32), n_keys=len(ids))
 
 
 def _volume_weights(plan: RasterPlan, rays: np.ndarray, ids: np.ndarray) -> np.ndarray:

@@ -18,4 +18,6 @@ def make_plan(rt: Runtime, means: np.ndarray, quats: np.ndarray, scales: np.ndar
     """
     dev = [to_device(rt, a) for a in (means, quats, scales, opacities)]
     proj = project(rt, *dev, viewmat, np.asarray(K), width, height, near, far)
-    return RasterPlan(rt, int(width), int(height), proj.splats, proj.radii, *bin_and_sort(rt, proj, width, height))
+    ranges, ids, n_keys = bin_and_sort(rt, proj, width, height)
+    return RasterPlan(runtime=rt, width=int(width), height=int(height), splats=proj.splats, radii=proj.radii,
+                      ranges=ranges, ids=ids, n_keys=n_keys)

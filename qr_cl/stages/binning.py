@@ -27,9 +27,9 @@ PLAN_META_KEYS = ("means2d", "conics", "opacities", "depths", "radii", "tile_ran
                   "n_keys")   # the entries of RasterPlan.meta
 
 
-@dataclass
+@dataclass(frozen=True, kw_only=True)
 class RasterPlan:
-    """Everything the per-pixel kernels need, on the device.
+    """Everything the per-pixel kernels need, on the device (built by keyword, never changed).
 
     splats [N,8] float32 (mean2d in px, conic, opacity, depth and sigma_max = ln(opacity /
     ALPHA_MIN), the exponent beyond which its alpha is skipped, in the slots of

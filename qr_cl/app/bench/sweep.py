@@ -83,7 +83,9 @@ class Sweep:
             self._finish()
             return out
         self._row(scene, "binning+sort", "-", 0, 0, measure(bin_sort, self.rounds))
-        plan = RasterPlan(self.rt, cam.width, cam.height, proj.splats, proj.radii, *bin_sort())
+        ranges, ids, n_keys = bin_sort()
+        plan = RasterPlan(runtime=self.rt, width=cam.width, height=cam.height, splats=proj.splats, radii=proj.radii,
+                          ranges=ranges, ids=ids, n_keys=n_keys)
         self._planned = (scene, plan)
         return plan
 
