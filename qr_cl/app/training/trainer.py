@@ -204,7 +204,7 @@ class Trainer:
         warnings.warn(f"view_selections_mb={self.cfg.view_selections_mb} is full: {len(self.views)} of the "
                       f"{views} views' whole-image selections are kept ({self.views.nbytes / 2**20:.0f} MiB); the "
                       "others' rays are selected afresh every step (the same results, slower; "
-                      "--view-selections-mb raises the bound)", stacklevel=2)
+                      "--view-selections-mb raises the bound)", stacklevel=3)
 
     def state(self) -> dict:
         """Everything a resume needs."""
