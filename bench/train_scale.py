@@ -33,6 +33,17 @@ from benchutil import arguments
 #: Sizes measured by default (Gaussians).
 SIZES = (80_000, 300_000, 1_000_000)
 
+#: What a training step does, and which of it grows with N (docs/design.md, "Training").
+GROWTH = """What grows with N, in a room of fixed size, frames, views and rays: the UNet runs on every
+voxel, and the voxels follow the room's occupied volume, not N; the blend and the loss take the
+step's views x rays x K entries, fixed; de-voxelization and the head's norms take the U Gaussians
+the rays touch, which grow with N but slower (the rays and their K entries are fixed); a view whose
+whole-image selection is not kept (`view_selections_mb`) is projected and binned afresh each step,
+O(N) per such view. In memory: the scene (about 56 bytes per Gaussian beyond its SH), the voxel
+index (16 bytes per Gaussian), the plans of the views being selected; the whole-view selections
+kept are bounded by `view_selections_mb` (a view's is frame pixels x K entries whatever N, plus its
+plan), and no [N, 512] table is made (the blend reads the head's D + 1 inputs)."""
+
 
 def cpu_name() -> str:
     """The CPU's model name (/proc/cpuinfo), else platform's guess."""
@@ -105,6 +116,14 @@ def report(results: dict) -> str:
         load = ", ".join(f"{r['load_before']:.2f} / {r['load_after']:.2f}" for r in row["runs"])
         lines.append(f"| {row['gaussians']:,} | {row['voxels']:,} | {row['touched_gaussians']:,.0f} "
                      f"| {row['s_per_step']:.2f} | {row['peak_gb']:.2f} | {row['cores_busy']:.2f} | {load} |")
+    first = results["sizes"][0]
+    lines += ["", f"Growth from {first['gaussians']:,} Gaussians (each quantity over its value there):", "",
+              "| Gaussians | N | voxels | U | s/step | peak |", "| --- | --- | --- | --- | --- | --- |"]
+    for row in results["sizes"]:
+        lines.append(f"| {row['gaussians']:,} | " + " | ".join(
+            f"{row[k] / first[k]:.2f}x" for k in ("gaussians", "voxels", "touched_gaussians", "s_per_step", "peak_gb"))
+            + " |")
+    lines += ["", GROWTH]
     bounds = sorted({w for row in results["sizes"] for r in row["runs"] for w in r["warnings"]})
     lines += ["", "Warnings the runs printed (bounds they met):", ""] + \
         ([f"- {row['gaussians']:,}: {w}" for row in results["sizes"]
