@@ -17,7 +17,7 @@ def test_report_has_a_row_and_a_growth_row_per_size():
     sizes = [{"gaussians": n, "voxels": v, "touched_gaussians": n / 2, "s_per_step": t, "peak_gb": p,
               "cores_busy": 1.0, "runs": [run(1, 1, []), run(2, 2, ["view_selections_mb=1 is full"])]}
              for n, v, t, p in ((1000, 10, 0.5, 1.0), (4000, 20, 1.0, 3.0))]
-    results = {"cpu": "CPU", "cores": 2, "memory_gb": 24, "extra": [], "room": {"width": 64, "height": 48, "views": 2},
+    results = {"command": "python bench/train_scale.py", "cpu": "CPU", "cores": 2, "memory_gb": 24, "extra": [], "room": {"width": 64, "height": 48, "views": 2},
                "short": 1, "long": 3, "rounds": 1, "sizes": sizes}
     text = train_scale.report(results)
     assert "| 4,000 | 20 | 2,000 | 1.00 | 3.00 | 1.00 |" in text

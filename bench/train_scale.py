@@ -39,8 +39,8 @@ voxel, and the voxels follow the room's occupied volume, not N; the blend and th
 step's views x rays x K entries, fixed; de-voxelization and the head's norms take the U Gaussians
 the rays touch, which grow with N but slower (the rays and their K entries are fixed); a view whose
 whole-image selection is not kept (`view_selections_mb`) is projected and binned afresh each step,
-O(N) per such view. In memory: the scene (about 56 bytes per Gaussian beyond its SH), the voxel
-index (16 bytes per Gaussian), the plans of the views being selected; the whole-view selections
+O(N) per such view. In memory: the scene (44 bytes per Gaussian in float32, plus its SH), the voxel
+index (24 bytes per Gaussian), the plans of the views being selected; the whole-view selections
 kept are bounded by `view_selections_mb` (a view's is frame pixels x K entries whatever N, plus its
 plan), and no [N, 512] table is made (the blend reads the head's D + 1 inputs)."""
 
@@ -107,9 +107,11 @@ def report(results: dict) -> str:
     lines = [f"# `qr-cl train` against the number of Gaussians", "",
              f"Machine: {results['cpu']}, {results['cores']} cores, {results['memory_gb']:.0f} GB. Room: the "
              f"synthetic \"3dgs\" room (seed 0), {cfg['width']}x{cfg['height']}, {cfg['views']} views, only its "
-             f"number of Gaussians changed. `qr-cl train` at its defaults {' '.join(results['extra'])}; s/step from "
+             f"number of Gaussians changed. `qr-cl train` at its defaults{''.join(' ' + a for a in results['extra'])}; "
+             f"s/step from "
              f"runs of {results['short']} and {results['long']} steps ({results['rounds']} round(s), the median), "
-             "peak: the long run's peak resident memory (`wait4`'s ru_maxrss), each run a fresh process.", "",
+             "peak: the long run's peak resident memory (`wait4`'s ru_maxrss), each run a fresh process. The "
+             "load average counts the runs' own threads too.", "", f"Command: `{results['command']}`", "",
              "| Gaussians | voxels | Gaussians a step touches (U) | s/step | peak GB | cores busy "
              "| load average (1 min) before / after |", "| --- | --- | --- | --- | --- | --- | --- |"]
     for row in results["sizes"]:
@@ -147,7 +149,8 @@ def main() -> None:
     if args.long <= args.short:
         parser.error(f"--long ({args.long}) must exceed --short ({args.short})")
     memory = int(Path("/proc/meminfo").read_text().split("MemTotal:")[1].split()[0]) * 1024
-    results = {"cpu": cpu_name(), "cores": os.cpu_count(), "memory_gb": memory / 1e9, "extra": extra,
+    results = {"command": " ".join(["python", "bench/train_scale.py", *sys.argv[1:]]), "cpu": cpu_name(),
+               "cores": os.cpu_count(), "memory_gb": memory / 1e9, "extra": extra,
                "room": {"width": args.width, "height": args.height, "views": args.views},
                "short": args.short, "long": args.long, "rounds": args.rounds, "sizes": []}
     for n in args.sizes:
@@ -160,7 +163,7 @@ def main() -> None:
             print(f"{n} Gaussians, round {r + 1}: {steps[-1]:.2f} s/step, peak {long['peak_gb']:.2f} GB", flush=True)
         longs = runs[1::2]
         cpu = statistics.median((b["cpu_s"] - a["cpu_s"]) / (b["wall_s"] - a["wall_s"]) for a, b in zip(runs[::2], longs))
-        results["sizes"].append({"gaussians": n, "folder": str(folder), "voxels": voxels, "s_per_step": statistics.median(steps),
+        results["sizes"].append({"gaussians": n, "folder": folder.name, "voxels": voxels, "s_per_step": statistics.median(steps),
                                  "s_per_step_rounds": steps, "peak_gb": max(r["peak_gb"] for r in longs),
                                  "touched_gaussians": n * statistics.median(r["touched"] for r in longs),
                                  "cores_busy": cpu, "runs": runs})
