@@ -44,7 +44,7 @@ class SelectionCache:
         self.max_bytes = int(max_bytes)
         self._entries: OrderedDict[Hashable, tuple[Selection, BackwardViews]] = OrderedDict()
         self._last_size = 0
-        self.hits = self.misses = 0
+        self.hits = self.misses = self.refused = 0
 
     @staticmethod
     def _size(sel: Selection, views: BackwardViews | None = None) -> int:
@@ -88,11 +88,16 @@ class SelectionCache:
         Nothing is evicted, so nothing kept is made twice: keys drawn at random (training's views)
         would otherwise evict each other, and the caller makes something cheaper instead."""
         sel = self._hit(key)
-        if sel is not None or self.nbytes + self._last_size > self.max_bytes:
+        if sel is not None:
             return sel
+        if self.nbytes + self._last_size > self.max_bytes:
+            self.refused += 1
+            return None
         sel, size = self._make(make)
         if self.nbytes + size <= self.max_bytes:
             self._entries[key] = (sel, BackwardViews())
+        else:
+            self.refused += 1
         return sel
 
     def backward_views(self, key: Hashable) -> BackwardViews | None:

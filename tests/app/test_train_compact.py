@@ -2,6 +2,8 @@
 gathered instead of recomputed, the step's loss equal to the full-table render's."""
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 import torch
@@ -12,7 +14,7 @@ from qr_cl.app.training import trainer as trainer_module
 from qr_cl.app.training.config import TrainConfig
 from qr_cl.app.training.loss import contrastive_loss, cosine_logits, head_cosine_logits
 from qr_cl.app.training.rays import rays_loss, sample_rays, scene_loss, step_rays
-from qr_cl.app.training.trainer import conv_thread_count, train
+from qr_cl.app.training.trainer import Trainer, conv_thread_count, train
 from qr_cl.backbone import GSNet, VoxelConfig, conv, devoxelize, minkunet14
 from qr_cl.render import SelectionCache, rasterize
 from qr_cl.scene import Gaussians
@@ -141,6 +143,23 @@ def test_same_seed_same_curve_with_or_without_kept_selections(scene, tmp_path):
     assert kept.history == again.history == fresh.history
     assert kept.views.nbytes > 0 and fresh.views is None
     assert all(0 < t < 1 for t in kept.touched)
+
+
+def test_a_full_view_cache_is_said_once_and_changes_nothing(scene, tmp_path):
+    """Views whose whole-image selections the cache has no room for: one warning naming the
+    bound, then none; the losses are those of a run that keeps every view."""
+    kept = train(_cfg(scene, tmp_path / "a", steps=3), progress=False)
+    full = Trainer(_cfg(scene, tmp_path / "b", steps=3))
+    full.views = SelectionCache(1)                  # room for no whole view
+    with pytest.warns(UserWarning, match=r"view_selections_mb=\d+ is full: 0 of the \d+ views"):
+        full.train_step()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        full.train_step()
+        full.train_step()
+    full.close()
+    assert full.views.refused > 0 and full.history == kept.history
+    assert kept.views.refused == 0
 
 
 def test_same_seed_same_curve_on_one_or_two_convolution_threads(scene, tmp_path, monkeypatch):

@@ -66,7 +66,8 @@ def test_get_if_room_keeps_what_fits_and_evicts_nothing(random_scene):
     first = cache.get_if_room(("room", 0, "quantile", 8), make)
     assert cache.get_if_room(("room", 0, "quantile", 8), make) is first and len(cache) == 1
     assert cache.get_if_room(("room", 1, "quantile", 8), make) is None     # no room: the caller selects
-    assert len(cache) == 1 and (cache.hits, cache.misses) == (1, 2)
+    assert len(cache) == 1 and (cache.hits, cache.misses, cache.refused) == (1, 2, 1)
     tiny = SelectionCache(max_bytes=16)
     assert tiny.get_if_room("a", make) is not None and len(tiny) == 0     # made, too large to keep
     assert tiny.get_if_room("b", make) is None
+    assert tiny.refused == 2

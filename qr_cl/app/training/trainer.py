@@ -44,6 +44,7 @@ import json
 import os
 import signal
 import sys
+import warnings
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, replace
 from functools import partial
@@ -109,6 +110,7 @@ class Trainer:
         self.views = SelectionCache(cfg.view_selections_mb << 20) if cfg.view_selections_mb > 0 else None
         self.touched: list[float] = []     # U / N of each slot this process trained (not checkpointed)
         self._ahead: dict[tuple[int, int], Future] = {}
+        self._said_full = False
         self._worker: ThreadPoolExecutor | None = None
         self.opt = torch.optim.Adam(self.net.parameters(), lr=cfg.lr, fused=True)
         self.sched = torch.optim.lr_scheduler.ReduceLROnPlateau(self.opt, factor=0.1, patience=cfg.patience)
@@ -169,6 +171,7 @@ class Trainer:
         mine = self.my_slots(self.step)
         made = [self._ahead.pop((self.step, slot)).result() if (self.step, slot) in self._ahead
                 else self.make_rays(self.step, slot, scene) for slot, scene in mine]
+        self._say_if_full()
         total, rays = torch.zeros(()), 0
         for i, ((slot, scene), step) in enumerate(zip(mine, made)):
             table = self.net.head_inputs(self.batch(scene), torch.from_numpy(step.rows))
@@ -194,6 +197,18 @@ class Trainer:
             self.sched.step(float(np.mean(self.window)))
             self.window = []
         return value, rays
+
+    def _say_if_full(self) -> None:
+        """Warn, once, when the whole-view selections reached ``view_selections_mb`` and a view's
+        were not kept: its rays are then selected afresh every step (the same results, slower)."""
+        if self._said_full or self.views is None or not self.views.refused:
+            return
+        self._said_full = True
+        views = sum(len(s.frames) for s in self.scenes)
+        warnings.warn(f"view_selections_mb={self.cfg.view_selections_mb} is full: {len(self.views)} of the "
+                      f"{views} views' whole-image selections are kept ({self.views.nbytes / 2**20:.0f} MiB); the "
+                      "others' rays are selected afresh every step (the same results, slower; "
+                      "--view-selections-mb raises the bound)", stacklevel=3)
 
     def state(self) -> dict:
         """Everything a resume needs."""
