@@ -156,12 +156,12 @@ def load_cameras(path: str | os.PathLike) -> list[Camera]:
 CAMERA_FILES = ("cameras.json", "transforms_train.json", "transforms.json")
 
 
-def scene_camera_file(folder: str | os.PathLike) -> Path:
-    """The first of :data:`CAMERA_FILES` in ``folder``; SceneFormatError naming the folder when it
-    has none."""
+def scene_camera_file(folder: str | os.PathLike, required: bool = True) -> Path | None:
+    """The first of :data:`CAMERA_FILES` in ``folder``; when it has none, SceneFormatError naming
+    the folder (``required``) or None."""
     folder = Path(folder)
     found = next((folder / name for name in CAMERA_FILES if (folder / name).is_file()), None)
-    if found is None:
+    if found is None and required:
         raise SceneFormatError(f"{folder}: no cameras (looked for {', '.join(CAMERA_FILES)})")
     return found
 

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ...scene import CAMERA_FILES, Camera, Gaussians, load_cameras, load_scene, read_ply_vertices, scene_camera_file
+from ...scene import Camera, Gaussians, load_cameras, load_scene, read_ply_vertices, scene_camera_file
 from ..process import torch_threads
 from ..scenes.folders import NO_LANGUAGE, ClassTable, SceneData, SceneDataError, load_scene_folder
 from ..training.network import load_checkpoint, network_features
@@ -49,7 +49,8 @@ def load_query_scene(path: str | Path, level: int = 0) -> QueryScene:
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", f".*{NO_LANGUAGE}")  # frames without language features are fine here
         data = load_scene_folder(path, level, require_language=False)
-    cameras = load_cameras(scene_camera_file(path)) if any((path / n).is_file() for n in CAMERA_FILES) else []
+    camera_file = scene_camera_file(path, required=False)
+    cameras = load_cameras(camera_file) if camera_file else []
     return QueryScene(path.name, data.gaussians, cameras, data.classes, data)
 
 

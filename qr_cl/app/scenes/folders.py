@@ -34,8 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ...scene import (CAMERA_FILES, Camera, Gaussians, SceneFormatError, SceneSplatFolder, is_scenesplat, load_cameras,
-                      load_ply, read_ply_vertices, scene_camera_file)
+from ...scene import (Camera, Gaussians, SceneFormatError, SceneSplatFolder, is_scenesplat, load_cameras, load_ply,
+                      read_ply_vertices, scene_camera_file)
 from .label_spaces import SEGMENT_SPACES, to_nyu40
 
 
@@ -215,8 +215,8 @@ def load_scene_folder(path, level: int = 0, require_language: bool = True) -> Sc
         raise SceneDataError(f"{root}: not a scene folder")
     splat = SceneSplatFolder(root) if is_scenesplat(root) else None
     gaussians = splat.gaussians if splat else load_ply(root / "point_cloud.ply")
-    has_cameras = splat is None or any((root / name).is_file() for name in CAMERA_FILES)
-    cams = load_cameras(scene_camera_file(root)) if has_cameras else []
+    camera_file = scene_camera_file(root, required=splat is None)
+    cams = load_cameras(camera_file) if camera_file else []
     lang = root / "language_features"
     frames, skipped = [], []
     for cam in cams:
