@@ -11,6 +11,7 @@ made ahead) under each install and compares every array's bytes (exit status 1 w
 from __future__ import annotations
 
 import argparse
+import inspect
 import sys
 import tempfile
 from pathlib import Path
@@ -74,9 +75,11 @@ def outputs() -> dict[str, np.ndarray]:
     whole = select(plan, "quantile", 8)
     parts = [gather_rays(whole, rng.integers(0, W * H, 300)) for _ in range(2)]
     rows, (compact,) = compact_selections([concat_selections(parts)])
-    views = prepare_backward(compact)            # None where an install's selections kept their own
+    index = prepare_backward(compact)            # None where an install's selections kept their own
     table = torch.from_numpy(feats[rows].copy()).requires_grad_(True)
-    r = blend(compact, table) if views is None else blend(compact, table, views=views)
+    name = next(n for n in ("backward_index", "views") if n in inspect.signature(blend).parameters) \
+        if index is not None else None         # the parameter's name in the install (views before)
+    r = blend(compact, table) if index is None else blend(compact, table, **{name: index})
     (r * torch.linspace(-1, 1, r.numel()).reshape(r.shape)).sum().backward()
     out["train-img"], out["train-grad"] = r.detach().numpy(), table.grad.numpy()
     return out

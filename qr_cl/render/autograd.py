@@ -19,7 +19,7 @@ import torch
 
 from ..runtime import (SPLAT, SPLAT_FLOATS, Runtime, channel_layout, check_channels, device_empty, device_rows, host_empty, row_parts,
                        shared_array, table_parts, to_device)
-from ..stages import (BackwardViews, RasterPlan, Selection, SelectionKernel, blend_backward, blend_backward_alpha,
+from ..stages import (BackwardIndex, RasterPlan, Selection, SelectionKernel, blend_backward, blend_backward_alpha,
                       blend_forward, project_backward, rows_to_half, sh_backward, sh_colors, splat_backward,
                       weight_grads)
 
@@ -64,21 +64,21 @@ class BlendFunction(torch.autograd.Function):
     backward is :func:`blend_backward` (deterministic: a fixed sum order per Gaussian); the
     background gets its gradient sum_p t_rem[p] dImage[p]. The selection gets none. A float16
     table gives a float32 image and a float16 gradient (summed in float32, then rounded).
-    ``views``: the selection's :class:`~qr_cl.stages.BackwardViews`, kept with it by the caller
+    ``backward_index``: the selection's :class:`~qr_cl.stages.BackwardIndex`, kept with it by the caller
     (None: the Function keeps its own).
     """
 
     @staticmethod
     def forward(ctx, features: torch.Tensor, selection: Selection, background: torch.Tensor | None,
-                views: BackwardViews | None):
+                backward_index: BackwardIndex | None):
         ctx.selection, ctx.channels, ctx.dtype = selection, features.shape[1], features.dtype
-        ctx.views = BackwardViews() if views is None else views
+        ctx.backward_index = BackwardIndex() if backward_index is None else backward_index
         return _blend_image(selection, features, background)
 
     @staticmethod
     def backward(ctx, grad_image: torch.Tensor):
         sel = ctx.selection
-        d_features = _feature_grad(sel, grad_image, ctx.channels, ctx.dtype, ctx.views) \
+        d_features = _feature_grad(sel, grad_image, ctx.channels, ctx.dtype, ctx.backward_index) \
             if ctx.needs_input_grad[0] else None
         d_background = _background_grad(sel, grad_image) if ctx.needs_input_grad[2] else None
         return d_features, None, d_background, None
@@ -103,7 +103,7 @@ def _blend_image(sel: Selection, features: torch.Tensor, background: torch.Tenso
 
 
 def _feature_grad(sel: Selection, grad_image: torch.Tensor, channels: int, dtype: torch.dtype,
-                  views: BackwardViews) -> torch.Tensor:
+                  backward_index: BackwardIndex) -> torch.Tensor:
     """dL/dfeatures [N,C] in ``dtype`` (the features') by the deterministic blend_backward, summed
     in float32 rows (a row part at a time where they exceed a device buffer); for a float16 table
     rounded on the device (rows_to_half) into the returned array."""
@@ -115,10 +115,12 @@ def _feature_grad(sel: Selection, grad_image: torch.Tensor, channels: int, dtype
         for r0, r1 in row_parts(rt, sel.n_gaussians, cstride):
             with shared_array(rt, host[r0:r1], "w") as out:
                 if half:
-                    rows_to_half(rt, blend_backward(sel, dimage, channels, row0=r0, n_rows=r1 - r0, views=views),
+                    rows_to_half(rt, blend_backward(sel, dimage, channels, row0=r0, n_rows=r1 - r0,
+                                                    backward_index=backward_index),
                                  out)
                 else:
-                    blend_backward(sel, dimage, channels, out=out, row0=r0, n_rows=r1 - r0, views=views)
+                    blend_backward(sel, dimage, channels, out=out, row0=r0, n_rows=r1 - r0,
+                                   backward_index=backward_index)
     return d.to(dtype)
 
 
@@ -128,18 +130,18 @@ def _background_grad(sel: Selection, grad_image: torch.Tensor) -> torch.Tensor:
 
 
 def blend(selection: Selection, features: torch.Tensor, background: torch.Tensor | None = None,
-          views: BackwardViews | None = None) -> torch.Tensor:
+          backward_index: BackwardIndex | None = None) -> torch.Tensor:
     """Differentiable blend: features [N,C] float tensor (C in 1..2048) -> image [P,C] (rays of the
     selection; for the whole image row p = y * width + x). Computed in float32 on the device (a
     float16 table read as half) and returned in features' dtype, at least float32. Gradients flow
-    to features (in their dtype) and background only. ``views``: what the backward reads of the
+    to features (in their dtype) and background only. ``backward_index``: what the backward reads of the
     selection, kept by the caller (e.g. made ahead by :func:`qr_cl.stages.prepare_backward`)."""
     if features.ndim != 2 or features.shape[0] != selection.n_gaussians:
         raise ValueError(f"features must be [{selection.n_gaussians}, C], got {tuple(features.shape)}")
     check_channels(features.shape[1])
     if background is not None and tuple(background.shape) != (features.shape[1],):
         raise ValueError(f"background must be [{features.shape[1]}], got {tuple(background.shape)}")
-    return BlendFunction.apply(features, selection, background, views)
+    return BlendFunction.apply(features, selection, background, backward_index)
 
 
 @dataclass(frozen=True)
@@ -227,21 +229,21 @@ class RasterFunction(torch.autograd.Function):
     the absolute per-pixel dL/dmean2d [N,2] (gsplat's absgrad) whenever means2d gets a gradient.
     The selection is piecewise constant in the geometry and gets no gradient; for the K samplers
     alpha is returned detached (it is the walk's T, over Gaussians the selection does not keep),
-    and so it is when the splats need no gradient. ``views``: the selection's
-    :class:`~qr_cl.stages.BackwardViews`, kept by the caller; ``kernel``: the selection's kernel
+    and so it is when the splats need no gradient. ``backward_index``: the selection's
+    :class:`~qr_cl.stages.BackwardIndex`, kept by the caller; ``kernel``: the selection's kernel
     when it is still to run, fused with this blend (:func:`qr_cl.stages.blend_forward`).
     """
 
     @staticmethod
     def forward(ctx, means2d: torch.Tensor | None, conics: torch.Tensor | None, opacities: torch.Tensor,
                 features: torch.Tensor, background: torch.Tensor | None, selection: Selection,
-                absgrad: AbsGradSink | None, views: BackwardViews, kernel: SelectionKernel | None):
+                absgrad: AbsGradSink | None, backward_index: BackwardIndex, kernel: SelectionKernel | None):
         image = _blend_image(selection, features, background, kernel)
         t_walk = selection.t_walk.get()[:selection.n_rays]
         alpha = torch.from_numpy(1 - t_walk[:, None]).to(image.dtype)
         if selection.sampler != "volume" or not any(ctx.needs_input_grad[:3]):   # alpha is the geometry's
             ctx.mark_non_differentiable(alpha)
-        ctx.selection, ctx.absgrad, ctx.views = selection, absgrad, views
+        ctx.selection, ctx.absgrad, ctx.backward_index = selection, absgrad, backward_index
         ctx.save_for_backward(features, background)
         return image, alpha
 
@@ -251,19 +253,20 @@ class RasterFunction(torch.autograd.Function):
         features, background = ctx.saved_tensors
         splat_grads = [None] * 3
         if any(ctx.needs_input_grad[:3]):
-            d_splats = _splat_grads(sel, features, background, grad_image, grad_alpha, ctx.views)
+            d_splats = _splat_grads(sel, features, background, grad_image, grad_alpha, ctx.backward_index)
             splat_grads = [_to_tensor(d_splats[:, cols], grad_image) if need else None
                            for cols, need in zip((SPLAT.mean, SPLAT.conic, SPLAT.opacity), ctx.needs_input_grad[:3])]
             if ctx.absgrad is not None and ctx.needs_input_grad[0]:
                 ctx.absgrad(d_splats[:, SPLAT.absgrad])
-        d_features = _feature_grad(sel, grad_image, features.shape[1], features.dtype, ctx.views) \
+        d_features = _feature_grad(sel, grad_image, features.shape[1], features.dtype, ctx.backward_index) \
             if ctx.needs_input_grad[3] else None
         d_background = _background_grad(sel, grad_image) if ctx.needs_input_grad[4] else None
         return (*splat_grads, d_features, d_background, None, None, None, None)
 
 
 def _splat_grads(sel: Selection, features: torch.Tensor, background: torch.Tensor | None,
-                 grad_image: torch.Tensor, grad_alpha: torch.Tensor | None, views: BackwardViews) -> np.ndarray:
+                 grad_image: torch.Tensor, grad_alpha: torch.Tensor | None,
+                 backward_index: BackwardIndex) -> np.ndarray:
     """dL/dsplats [N,8] float32 on the host (d mean2d, d conic, d opacity and absgrad, the sums of
     |d mean2d x|, |d mean2d y| over the entries, in the slots of :data:`~qr_cl.runtime.SPLAT`) of :class:`RasterFunction`: weight_grads of each
     row part of the table -> blend_backward_alpha -> splat_backward."""
@@ -283,7 +286,7 @@ def _splat_grads(sel: Selection, features: torch.Tensor, background: torch.Tenso
     with device_rows(rt, host_rows(grad_image), cstride) as dimage:
         for r0, rows in table_parts(rt, table, cstride):
             weight_grads(sel, rows, dimage, channels, row0=r0, out=d_w)
-    return splat_backward(sel, blend_backward_alpha(sel, d_w, d_trem), views).get()
+    return splat_backward(sel, blend_backward_alpha(sel, d_w, d_trem), backward_index).get()
 
 
 class SHColors(torch.autograd.Function):

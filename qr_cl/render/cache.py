@@ -8,7 +8,7 @@ from typing import Callable, Hashable
 
 import numpy as np
 
-from ..stages import BackwardViews, Selection
+from ..stages import BackwardIndex, Selection
 
 
 def selection_key(*arrays_and_values) -> str:
@@ -32,7 +32,7 @@ class SelectionCache:
 
     Selections depend on geometry, camera, sampler and K only, so training can reuse one per view
     every epoch. Each entry keeps, beside its Selection, the selection's
-    :class:`~qr_cl.stages.BackwardViews` (:meth:`backward_views`: what backwards of it make once
+    :class:`~qr_cl.stages.BackwardIndex` (:meth:`backward_index`: what backwards of it make once
     and share), counted in its bytes. :meth:`get` evicts the least recently used; :meth:`get_if_room` evicts nothing.
     A Selection larger than ``max_bytes`` is returned but not kept. Cache-free rendering (no cache
     passed to :func:`qr_cl.rasterize`) is the default.
@@ -42,18 +42,18 @@ class SelectionCache:
         if max_bytes <= 0:
             raise ValueError(f"max_bytes must be positive, got {max_bytes}")
         self.max_bytes = int(max_bytes)
-        self._entries: OrderedDict[Hashable, tuple[Selection, BackwardViews]] = OrderedDict()
+        self._entries: OrderedDict[Hashable, tuple[Selection, BackwardIndex]] = OrderedDict()
         self._last_size = 0
         self.hits = self.misses = self.refused = 0
 
     @staticmethod
-    def _size(sel: Selection, views: BackwardViews | None = None) -> int:
-        return sel.nbytes + sel.plan.nbytes + (0 if views is None else views.nbytes)
+    def _size(sel: Selection, backward_index: BackwardIndex | None = None) -> int:
+        return sel.nbytes + sel.plan.nbytes + (0 if backward_index is None else backward_index.nbytes)
 
     @property
     def nbytes(self) -> int:
         """Device bytes held now."""
-        return sum(self._size(sel, views) for sel, views in self._entries.values())
+        return sum(self._size(sel, index) for sel, index in self._entries.values())
 
     def _hit(self, key: Hashable) -> Selection | None:
         """The Selection kept under ``key`` (now the most recently used), counting the hit or miss."""
@@ -79,7 +79,7 @@ class SelectionCache:
         if size <= self.max_bytes:
             while self._entries and self.nbytes + size > self.max_bytes:
                 self._entries.popitem(last=False)
-            self._entries[key] = (sel, BackwardViews())
+            self._entries[key] = (sel, BackwardIndex())
         return sel
 
     def get_if_room(self, key: Hashable, make: Callable[[], Selection]) -> Selection | None:
@@ -95,13 +95,13 @@ class SelectionCache:
             return None
         sel, size = self._make(make)
         if self.nbytes + size <= self.max_bytes:
-            self._entries[key] = (sel, BackwardViews())
+            self._entries[key] = (sel, BackwardIndex())
         else:
             self.refused += 1
         return sel
 
-    def backward_views(self, key: Hashable) -> BackwardViews | None:
-        """The :class:`~qr_cl.stages.BackwardViews` kept with the Selection under ``key`` (None
+    def backward_index(self, key: Hashable) -> BackwardIndex | None:
+        """The :class:`~qr_cl.stages.BackwardIndex` kept with the Selection under ``key`` (None
         when none is kept): pass them to its backward (the engine does), so that its transpose and
         owner bounds are made once."""
         entry = self._entries.get(key)

@@ -17,7 +17,7 @@ import torch
 
 from ..runtime import (BufferLimitError, Runtime, channel_layout, check_buffer, check_channels, host_empty, table_parts,
                        trim_device_pool)
-from ..stages import (BackwardViews, RasterPlan, Selection, SelectionKernel, deferred_select, entry_bytes,
+from ..stages import (BackwardIndex, RasterPlan, Selection, SelectionKernel, deferred_select, entry_bytes,
                       render_fused)
 from .autograd import AbsGradSink, ProjectFunction, RasterFunction, SHColors, View, host_rows, table_rows
 from .cache import SelectionCache, selection_key
@@ -180,7 +180,7 @@ def render_view(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, 
 
     A selection made here (not found in ``cache``) is made by its first blend, the selection kernel
     with the blend fused in (:func:`qr_cl.stages.deferred_select`): an explicit step of
-    :func:`_render_rays`. Its backward views (transpose, owner bounds) are kept with it: in the
+    :func:`_render_rays`. Its backward index (transpose, owner bounds) is kept with it: in the
     cache's entry, or by the autograd Functions of this render."""
     n, channels = means.shape[0], features.shape[1]
     n_rays = view.width * view.height if view.pixels is None else len(view.pixels)
@@ -192,8 +192,8 @@ def render_view(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, 
     plans: list[RasterPlan] = [] if splats is None else [splats.plan]
     made: list[Splats2D] = [] if splats is None else [splats]
 
-    def selection(rays: np.ndarray | None) -> tuple[Selection, BackwardViews, SelectionKernel | None]:
-        """The selection of ``rays``, its backward views and its kernel if still to run (made here)."""
+    def selection(rays: np.ndarray | None) -> tuple[Selection, BackwardIndex, SelectionKernel | None]:
+        """The selection of ``rays``, its backward index and its kernel if still to run (made here)."""
         kernel = None
 
         def make() -> Selection:
@@ -204,11 +204,11 @@ def render_view(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, 
             sel, kernel = deferred_select(plans[0], view.sampler, max(view.k, 1), rays)
             return sel
         if cache is None:
-            return make(), BackwardViews(), kernel
+            return make(), BackwardIndex(), kernel
         key = selection_key(*geometry, view.viewmat, view.K, view.width, view.height, view.near, view.far,
                             view.sampler, view.k, rays)
         sel = cache.get(key, make)
-        return sel, cache.backward_views(key) or BackwardViews(), kernel
+        return sel, cache.backward_index(key) or BackwardIndex(), kernel
 
     def splats_of(plan: RasterPlan) -> Splats2D:
         if not made:
@@ -263,7 +263,7 @@ def _render_rays(selection, splats_of, rays: np.ndarray | None, view: View, tabl
     be made is made by the first table's blend, its kernel fused in; if that blend fails, by its
     kernel alone (a cache may keep the selection)."""
     try:
-        sel, views, kernel = selection(rays)
+        sel, backward_index, kernel = selection(rays)
     except BufferLimitError:
         if rays is not None and len(rays) < 2:
             raise
@@ -276,7 +276,7 @@ def _render_rays(selection, splats_of, rays: np.ndarray | None, view: View, tabl
         s2d = splats_of(sel.plan)
         for features, background in tables:
             outs.append(RasterFunction.apply(s2d.means2d, s2d.conics, s2d.opacities, features, background, sel,
-                                             absgrad, views, None if outs else kernel))
+                                             absgrad, backward_index, None if outs else kernel))
     finally:
         if kernel is not None and not outs:
             kernel.run()                     # made even if no blend ran (it may be cached)

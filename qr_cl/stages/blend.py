@@ -54,12 +54,12 @@ def _check_entries(array: cla.Array, sel: Selection, name: str) -> None:
 
 
 @dataclass(eq=False)
-class BackwardViews:
+class BackwardIndex:
     """What the backward of one Selection reads besides it, made on first use and kept by the
     selection's holder (the engine's cache entry or autograd Function, a training step), never by
     the Selection: its transpose (:func:`qr_cl.stages.transpose.transpose`, None until made) and
     the backward scatter's owner bounds by (number of owners, first row, rows) of a row part
-    (:func:`owner_bounds`). Pass the same views to every backward call of the selection."""
+    (:func:`owner_bounds`). Pass the same index to every backward call of the selection."""
 
     transposed: Transpose | None = None
     owners: dict[tuple[int, int, int], cla.Array] = field(default_factory=dict)
@@ -165,7 +165,8 @@ def blend_forward(sel: Selection, features: cla.Array, channels: int,
 
 
 def blend_backward(sel: Selection, dimage: cla.Array, channels: int, out: cla.Array | None = None,
-                   row0: int = 0, n_rows: int | None = None, views: BackwardViews | None = None) -> cla.Array:
+                   row0: int = 0, n_rows: int | None = None,
+                   backward_index: BackwardIndex | None = None) -> cla.Array:
     """dF [R, cstride] with dF[g - row0] = sum over entries (p, j) with id[p,j] = g of w[p,j]
     dimage[p], for the Gaussians g of the rows [row0, row0 + R) (R = ``n_rows``; None: to N).
 
@@ -175,8 +176,8 @@ def blend_backward(sel: Selection, dimage: cla.Array, channels: int, out: cla.Ar
     return identical bytes, for any row part, on either kernel (:func:`scatters` says which): a
     scatter by OWNERS_PER_CORE work-items per compute unit, each owning a range of the part's
     Gaussians (no transpose), or a gather over :func:`qr_cl.stages.transpose.transpose`.
-    ``views``: the selection's :class:`BackwardViews` (read and completed here; None: made for
-    this call alone).
+    ``backward_index``: the selection's :class:`BackwardIndex` (read and completed here; None:
+    made for this call alone).
     """
     rt = sel.plan.runtime
     vw, nv, cstride = channel_layout(channels, rt.narrow_rows)
@@ -186,20 +187,20 @@ def blend_backward(sel: Selection, dimage: cla.Array, channels: int, out: cla.Ar
     check_buffer(rt, 4 * n_rows * cstride, f"dF of {n_rows} Gaussians x {cstride} channels")
     dfeatures = device_empty(rt, (n_rows, cstride), np.float32) if out is None else out
     _check_rows(dfeatures, n_rows, cstride, "out")
-    views = BackwardViews() if views is None else views
-    if scatters(sel, views):
+    backward_index = BackwardIndex() if backward_index is None else backward_index
+    if scatters(sel, backward_index):
         n_owners = OWNERS_PER_CORE * rt.device.max_compute_units
         key = (n_owners, row0, n_rows)
-        if key not in views.owners:
-            views.owners[key] = to_device(rt, owner_bounds(sel, n_owners, row0, row0 + n_rows), np.int32)
-        bounds = views.owners[key]
+        if key not in backward_index.owners:
+            backward_index.owners[key] = to_device(rt, owner_bounds(sel, n_owners, row0, row0 + n_rows), np.int32)
+        bounds = backward_index.owners[key]
         rt.launch("blend_backward_scatter", bounds.size - 1, defines={"VW": vw, "NV": nv}, local_size=(1,),
                   n_owners=bounds.size - 1, bounds=bounds, n_rays=sel.n_rays,
                   offsets=sel.offsets, count=sel.count, n_entries=sel.ids.size, sel_ids=sel.ids,
                   sel_w=sel.weights, dimage=dimage, cstride=cstride, row0=row0,
                   touched=device_zeros(rt, max(n_rows, 1), np.uint8), dfeatures=dfeatures)
         return dfeatures
-    t = views.transpose(sel)
+    t = backward_index.transpose(sel)
     args = dict(n=n_rows, order=backward_order(sel, t, row0, row0 + n_rows), n_chunks=t.chunks, cursor=t.cursor,
                 t_ray=t.ray, t_w=t.weight, dimage=dimage, n_rays=sel.n_rays, cstride=cstride, row0=row0,
                 dfeatures=dfeatures)
@@ -250,8 +251,8 @@ def owner_bounds(sel: Selection, owners: int, g0: int = 0, g1: int | None = None
     return np.concatenate([[g0], np.clip(cuts << shift, g0, g1), [g1]]).astype(np.int32)
 
 
-def scatters(sel: Selection, views: BackwardViews | None = None) -> bool:
-    """Whether :func:`blend_backward` with ``views`` scatters rather than gathers over the
+def scatters(sel: Selection, backward_index: BackwardIndex | None = None) -> bool:
+    """Whether :func:`blend_backward` with ``backward_index`` scatters rather than gathers over the
     transpose: on CPU-shaped runtimes, for whole images (at least as many rays as Gaussians) and
     for pixel subsets whose transpose was not made ahead (:func:`prepare_backward`); GPU shapes
     always gather. On PoCL the
@@ -262,17 +263,17 @@ def scatters(sel: Selection, views: BackwardViews | None = None) -> bool:
     rt = sel.plan.runtime
     if rt.gpu_shaped or rt.loop_limit is not None:
         return False
-    return sel.n_rays >= sel.n_gaussians or views is None or views.transposed is None
+    return sel.n_rays >= sel.n_gaussians or backward_index is None or backward_index.transposed is None
 
 
-def prepare_backward(sel: Selection) -> BackwardViews:
-    """The :class:`BackwardViews` of ``sel`` with what :func:`blend_backward` will need made ahead
+def prepare_backward(sel: Selection) -> BackwardIndex:
+    """The :class:`BackwardIndex` of ``sel`` with what :func:`blend_backward` will need made ahead
     (geometry only: the transpose, for GPU shapes and pixel subsets), e.g. on another thread while
     the network runs."""
-    views = BackwardViews()
-    if not scatters(sel, views) or sel.n_rays < sel.n_gaussians:
-        views.transpose(sel)
-    return views
+    backward_index = BackwardIndex()
+    if not scatters(sel, backward_index) or sel.n_rays < sel.n_gaussians:
+        backward_index.transpose(sel)
+    return backward_index
 
 
 def _ray_pixels(sel: Selection) -> dict:
@@ -331,15 +332,16 @@ def blend_backward_alpha(sel: Selection, d_w: cla.Array, d_trem: np.ndarray | No
     return d_w
 
 
-def splat_backward(sel: Selection, d_alpha: cla.Array, views: BackwardViews | None = None) -> cla.Array:
+def splat_backward(sel: Selection, d_alpha: cla.Array,
+                   backward_index: BackwardIndex | None = None) -> cla.Array:
     """dL/dsplat [N, 8] float32 (d mean2d in px, d conic and d opacity in their slots of
     :data:`~qr_cl.runtime.SPLAT`, and in its ``absgrad`` slots the sums over the entries of
     |d mean2d x| and |d mean2d y|, gsplat's absgrad) from
     dL/dalpha per selection entry (:func:`blend_backward_alpha`), summed per Gaussian over the
     selection's transpose in a fixed order (bitwise reproducible). Entries whose alpha was
-    clamped to ALPHA_MAX contribute nothing. ``views``: as :func:`blend_backward`'s."""
+    clamped to ALPHA_MAX contribute nothing. ``backward_index``: as :func:`blend_backward`'s."""
     rt = sel.plan.runtime
-    t = (BackwardViews() if views is None else views).transpose(sel)
+    t = (BackwardIndex() if backward_index is None else backward_index).transpose(sel)
     d_splats = device_empty(rt, (sel.n_gaussians, SPLAT_FLOATS), np.float32)
     # splat_backward reads no feature rows; blend.cl is built with some row vector width all the same
     for walk_from, walk_to in walk_windows(rt.loop_limit, longest_segment(t) if rt.loop_limit else 0, SPLAT_LOOPS):

@@ -37,7 +37,7 @@ class Selection:
     The contract: its fields are never reassigned (frozen), and no stage writes into it or its
     arrays once the selection kernel has run; the stages that read it (blend, transpose) return
     what they make of it (the transpose, the backward's owner bounds:
-    :class:`qr_cl.stages.blend.BackwardViews`) to their caller, which keeps it beside the selection.
+    :class:`qr_cl.stages.blend.BackwardIndex`) to their caller, which keeps it beside the selection.
     Equality is identity (two selections are the same only if they are one object).
 
     Rays: the whole image (``pixels is None``, ray p = y * width + x) or a pixel subset

@@ -89,15 +89,15 @@ def _cfg(scene, out, **kw) -> TrainConfig:
 def test_step_rays_gathered_equal_recomputed(scene, sampler, k):
     data = load_scene_folder(scene)
     cfg = _cfg(scene, "-", sampler=sampler, k=k)
-    views = SelectionCache(1 << 30)
+    cache = SelectionCache(1 << 30)
     for seed in range(2):
-        kept = step_rays(data, cfg, np.random.default_rng(seed), views)
+        kept = step_rays(data, cfg, np.random.default_rng(seed), cache)
         fresh = step_rays(data, cfg, np.random.default_rng(seed))
         np.testing.assert_array_equal(kept.rows, fresh.rows)
         for name, value in kept.selection.host().items():
             np.testing.assert_array_equal(value, fresh.selection.host()[name], err_msg=name)
         assert kept.n_rays == 3 * 200 and 0 < kept.touched < 1
-    assert 0 < len(views) <= len(data.frames) and views.nbytes > 0 and views.hits > 0
+    assert 0 < len(cache) <= len(data.frames) and cache.nbytes > 0 and cache.hits > 0
     full = SelectionCache(1)                  # no room for a whole view: its rays are selected afresh
     step_rays(data, cfg, np.random.default_rng(0), full)
     assert full.nbytes == 0 and len(full) == 0
@@ -141,7 +141,7 @@ def test_same_seed_same_curve_with_or_without_kept_selections(scene, tmp_path):
     again = train(_cfg(scene, tmp_path / "b"), progress=False)
     fresh = train(_cfg(scene, tmp_path / "c", view_selections_mb=0), progress=False)
     assert kept.history == again.history == fresh.history
-    assert kept.views.nbytes > 0 and fresh.views is None
+    assert kept.selections.nbytes > 0 and fresh.selections is None
     assert all(0 < t < 1 for t in kept.touched)
 
 
@@ -150,7 +150,7 @@ def test_a_full_view_cache_is_said_once_and_changes_nothing(scene, tmp_path):
     bound, then none; the losses are those of a run that keeps every view."""
     kept = train(_cfg(scene, tmp_path / "a", steps=3), progress=False)
     full = Trainer(_cfg(scene, tmp_path / "b", steps=3))
-    full.views = SelectionCache(1)                  # room for no whole view
+    full.selections = SelectionCache(1)             # room for no whole view
     with pytest.warns(UserWarning, match=r"view_selections_mb=\d+ is full: 0 of the \d+ views"):
         full.train_step()
     with warnings.catch_warnings():
@@ -158,8 +158,8 @@ def test_a_full_view_cache_is_said_once_and_changes_nothing(scene, tmp_path):
         full.train_step()
         full.train_step()
     full.close()
-    assert full.views.refused > 0 and full.history == kept.history
-    assert kept.views.refused == 0
+    assert full.selections.refused > 0 and full.history == kept.history
+    assert kept.selections.refused == 0
 
 
 def test_same_seed_same_curve_on_one_or_two_convolution_threads(scene, tmp_path, monkeypatch):

@@ -57,7 +57,7 @@ def child() -> None:
         blend_forward(sel, features, C).get()
         blend_forward(sel, part, C, row0=N // 2).get()
         for scatter in (True, False):                   # both backward kernels (the gather transposes)
-            blend_module.scatters = (lambda s, views=None, v=scatter: v)
+            blend_module.scatters = (lambda s, backward_index=None, v=scatter: v)
             blend_backward(sel, dimage, C).get()
             blend_backward(sel, dimage, C, row0=N // 2).get()
         blend_module.scatters = scatters

@@ -75,7 +75,7 @@ def test_backward_bytes_do_not_depend_on_the_kernel(plan, monkeypatch, owners_pe
     dimage = device_rows(plan, rng.standard_normal((sel.n_rays, channels)).astype(np.float32))
     first = blend_backward(sel, dimage, channels).get()
     if owners_per_core == "gather":
-        monkeypatch.setattr(blend_stage, "scatters", lambda sel, views=None: False)
+        monkeypatch.setattr(blend_stage, "scatters", lambda sel, backward_index=None: False)
     else:
         monkeypatch.setattr(blend_stage, "OWNERS_PER_CORE", owners_per_core)
     second = blend_backward(sel, dimage, channels).get()
@@ -94,7 +94,7 @@ def test_register_chunks_do_not_change_the_bytes(plan, monkeypatch, acc_floats):
     def outputs():
         image = blend_forward(sel, features, 512)
         with monkeypatch.context() as m:
-            m.setattr(blend_stage, "scatters", lambda sel, views=None: False)
+            m.setattr(blend_stage, "scatters", lambda sel, backward_index=None: False)
             grad = blend_backward(sel, image, 512)
         return image.get(), grad.get(), render_fused(plan, features, 512)[0]
 

@@ -30,22 +30,22 @@ class BaselineSettings(RaySettings, Protocol):
 
 
 def fit_free_features(scene: SceneData, cfg: BaselineSettings, lr: float = 0.05, progress: bool = True,
-                      views: SelectionCache | None = None) -> np.ndarray:
+                      cache: SelectionCache | None = None) -> np.ndarray:
     """Optimize free features of ``scene`` for ``cfg.steps`` steps (Adam at ``lr``; views, rays,
     sampler, K and temperature from ``cfg``). Returns unit features [N,C] float32.
 
     A step renders from the rows its rays select (normalized there); their gradient is written
     into the table's persistent gradient (zero elsewhere) and a fused Adam updates the whole table
-    in place, so no [N,C] array is allocated per step. ``views`` keeps the views' whole-image
+    in place, so no [N,C] array is allocated per step. ``cache`` keeps the views' whole-image
     selections (default: 1 GiB of them)."""
     gen = torch.Generator().manual_seed(cfg.seed)
     table = torch.nn.Parameter(torch.randn(len(scene.gaussians), scene.feature_dim, generator=gen))
     table.grad = torch.zeros_like(table)
     opt = torch.optim.Adam([table], lr=lr, fused=True)
-    views = SelectionCache(1 << 30) if views is None else views
+    cache = SelectionCache(1 << 30) if cache is None else cache
     bar = tqdm(range(cfg.steps), desc=f"free features {scene.name}", unit="step", disable=not progress)
     for step in bar:
-        rays = step_rays(scene, cfg, np.random.default_rng([cfg.seed, step, 0]), views)
+        rays = step_rays(scene, cfg, np.random.default_rng([cfg.seed, step, 0]), cache)
         rows = torch.from_numpy(rays.rows)
         used = table.detach().index_select(0, rows).requires_grad_()
         loss = rays_loss(rays, F.normalize(used, dim=1), cfg.temperature)

@@ -17,7 +17,7 @@ import torch.nn.functional as F
 
 from ...render import SelectionCache, blend, rasterize_plan
 from ...scene import Camera, Gaussians
-from ...stages import BackwardViews, RasterPlan, Selection, select
+from ...stages import BackwardIndex, RasterPlan, Selection, select
 from ..scenes.folders import Frame, SceneData
 from .loss import cosine_logits, head_cosine_logits
 from .selections import compact_selections, concat_selections, gather_rays
@@ -57,13 +57,13 @@ def view_plan(scene: SceneData, frame_index: int) -> RasterPlan:
 
 
 def frame_selection(scene: SceneData, frame_index: int, pixels: np.ndarray, sampler: str, k: int,
-                    views: SelectionCache | None = None) -> Selection:
+                    cache: SelectionCache | None = None) -> Selection:
     """The selection of ``pixels`` [P,2] (x, y) of frame ``frame_index`` of ``scene``: gathered
     (:func:`qr_cl.app.training.selections.gather_rays`: the same entries a selection of those
-    pixels computes) from the view's whole-image selection, which ``views`` keeps under (scene,
+    pixels computes) from the view's whole-image selection, which ``cache`` keeps under (scene,
     view, sampler, K) once made, while it has room (:meth:`SelectionCache.get_if_room`); selected
-    afresh when ``views`` is None or full."""
-    whole = None if views is None else views.get_if_room(
+    afresh when ``cache`` is None or full."""
+    whole = None if cache is None else cache.get_if_room(
         (str(scene.root), frame_index, sampler, k), lambda: select(view_plan(scene, frame_index), sampler, k))
     if whole is None:
         return select(view_plan(scene, frame_index), sampler, k, pixels)
@@ -79,7 +79,7 @@ class StepRays:
     ``selection``: the rays of all views, view after view, as one compact selection of U rows (one
     blend, one backward); per view ``targets`` [P] int64 (each ray's mask row) and
     ``mask_features`` [M,C] float32 (the view's unit mask features). ``n_gaussians`` is the
-    scene's N. ``views``: what the selection's blend backward reads of it, kept here (made ahead
+    scene's N. ``backward_index``: what the selection's blend backward reads of it, kept here (made ahead
     by :func:`qr_cl.stages.prepare_backward` where a trainer does so).
     """
 
@@ -88,7 +88,7 @@ class StepRays:
     targets: list[np.ndarray]
     mask_features: list[np.ndarray]
     n_gaussians: int
-    views: BackwardViews = field(default_factory=BackwardViews)
+    backward_index: BackwardIndex = field(default_factory=BackwardIndex)
 
     @property
     def n_rays(self) -> int:
@@ -101,9 +101,9 @@ class StepRays:
 
 
 def step_rays(scene: SceneData, cfg: RaySettings, rng: np.random.Generator,
-              views: SelectionCache | None = None) -> StepRays:
+              cache: SelectionCache | None = None) -> StepRays:
     """Draw ``cfg.views`` random views of ``scene`` with two or more masks and ``cfg.rays`` rays
-    inside masks per view, select them (gathered from ``views``' whole-image selections, or
+    inside masks per view, select them (gathered from ``cache``'s whole-image selections, or
     selected afresh when None) and re-index the selections into the Gaussians they use."""
     usable = [i for i, f in enumerate(scene.frames) if len(f.features) > 1]
     if not usable:
@@ -113,7 +113,7 @@ def step_rays(scene: SceneData, cfg: RaySettings, rng: np.random.Generator,
     for v in picked:
         frame = scene.frames[int(v)]
         pixels, target = sample_rays(frame, cfg.rays, rng)
-        selections.append(frame_selection(scene, int(v), pixels, cfg.sampler, cfg.k, views))
+        selections.append(frame_selection(scene, int(v), pixels, cfg.sampler, cfg.k, cache))
         targets.append(target)
         masks.append(frame.features)
     rows, (compact,) = compact_selections([concat_selections(selections)])
@@ -130,7 +130,8 @@ def rays_loss(rays: StepRays, table: torch.Tensor, temperature: float, head: tor
     if table.ndim != 2 or table.shape[0] != len(rays.rows):
         raise ValueError(f"table must be [{len(rays.rows)}, C] (one row per Gaussian in rays.rows), "
                          f"got {tuple(table.shape)}")
-    rendered, sizes = blend(rays.selection, table, views=rays.views), [len(t) for t in rays.targets]
+    rendered = blend(rays.selection, table, backward_index=rays.backward_index)
+    sizes = [len(t) for t in rays.targets]
     masks = [torch.from_numpy(m) for m in rays.mask_features]
     logits = cosine_logits(rendered, sizes, masks, temperature) if head is None else \
         head_cosine_logits(rendered, head, sizes, masks, temperature)
@@ -139,8 +140,8 @@ def rays_loss(rays: StepRays, table: torch.Tensor, temperature: float, head: tor
 
 
 def scene_loss(scene: SceneData, features: torch.Tensor, cfg: RaySettings, rng: np.random.Generator,
-               views: SelectionCache | None = None) -> tuple[torch.Tensor, int]:
+               cache: SelectionCache | None = None) -> tuple[torch.Tensor, int]:
     """Mean contrastive loss over ``cfg.views`` random views of ``cfg.rays`` rays rendered from
     ``features`` [N,C] (all Gaussians; only the rows the rays use are read); (loss, rays used)."""
-    rays = step_rays(scene, cfg, rng, views)
+    rays = step_rays(scene, cfg, rng, cache)
     return rays_loss(rays, features[torch.from_numpy(rays.rows)], cfg.temperature), rays.n_rays

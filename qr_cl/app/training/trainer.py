@@ -107,7 +107,7 @@ class Trainer:
         torch.manual_seed(cfg.seed)
         self.net = build_net(cfg.net, cfg.feature_dim, cfg.grid_size)
         self.batches: dict[int, object] = {}
-        self.views = SelectionCache(cfg.view_selections_mb << 20) if cfg.view_selections_mb > 0 else None
+        self.selections = SelectionCache(cfg.view_selections_mb << 20) if cfg.view_selections_mb > 0 else None
         self.touched: list[float] = []     # U / N of each slot this process trained (not checkpointed)
         self._ahead: dict[tuple[int, int], Future] = {}
         self._said_full = False
@@ -133,8 +133,9 @@ class Trainer:
         """The rays of ``slot`` of ``step`` (scene index ``scene``), selected and re-indexed, with
         what the blend backward needs of them made too (:func:`prepare_backward`): geometry only,
         so it can run while the network of the previous step does."""
-        rays = step_rays(self.scenes[scene], self.cfg, np.random.default_rng([self.cfg.seed, step, slot]), self.views)
-        return replace(rays, views=prepare_backward(rays.selection))
+        rng = np.random.default_rng([self.cfg.seed, step, slot])
+        rays = step_rays(self.scenes[scene], self.cfg, rng, self.selections)
+        return replace(rays, backward_index=prepare_backward(rays.selection))
 
     def prefetch(self, step: int) -> None:
         """Start making the rays of ``step`` on a background thread (one slot at a time). Call it
@@ -201,12 +202,12 @@ class Trainer:
     def _say_if_full(self) -> None:
         """Warn, once, when the whole-view selections reached ``view_selections_mb`` and a view's
         were not kept: its rays are then selected afresh every step (the same results, slower)."""
-        if self._said_full or self.views is None or not self.views.refused:
+        if self._said_full or self.selections is None or not self.selections.refused:
             return
         self._said_full = True
         views = sum(len(s.frames) for s in self.scenes)
-        warnings.warn(f"view_selections_mb={self.cfg.view_selections_mb} is full: {len(self.views)} of the "
-                      f"{views} views' whole-image selections are kept ({self.views.nbytes / 2**20:.0f} MiB); the "
+        warnings.warn(f"view_selections_mb={self.cfg.view_selections_mb} is full: {len(self.selections)} of the "
+                      f"{views} views' whole-image selections are kept ({self.selections.nbytes / 2**20:.0f} MiB); the "
                       "others' rays are selected afresh every step (the same results, slower; "
                       "--view-selections-mb raises the bound)", stacklevel=3)
 
