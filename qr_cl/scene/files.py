@@ -276,9 +276,11 @@ def load_scene(path: str | os.PathLike) -> Gaussians:
     (:mod:`.scenesplat`) or a scene folder's ``point_cloud.ply``."""
     path = Path(path)
     if path.is_dir():
-        if is_scenesplat(path) or not (path / "point_cloud.ply").is_file():
-            return SceneSplatFolder(path).gaussians
-        return load_ply(path / "point_cloud.ply")
+        if (path / "point_cloud.ply").is_file() and not is_scenesplat(path):
+            return load_ply(path / "point_cloud.ply")
+        if not any(path.glob("*.npy")):
+            raise SceneFormatError(f"{path}: a folder with neither point_cloud.ply nor SceneSplat's .npy files")
+        return SceneSplatFolder(path).gaussians
     if path.suffix.lower() == ".splat":
         return load_splat(path)
     return load_ply(path)

@@ -160,6 +160,9 @@ def test_missing_files_and_bad_labels(tmp_path):
     (tmp_path / "s" / "opacity.npy").unlink()
     with pytest.raises(SceneFormatError, match=r"not a SceneSplat folder, missing opacity\.npy"):
         load_scene(tmp_path / "s")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(SceneFormatError, match=r"empty: a folder with neither point_cloud\.ply nor SceneSplat's"):
+        load_scene(tmp_path / "empty")
 
 
 def test_convert_and_render_commands(tmp_path, capsys):
