@@ -129,13 +129,12 @@ def _selections(rt: Runtime, scene, pixels) -> dict[str, np.ndarray]:
     return out
 
 
-def test_selections_follow_another_walk_state_layout(random_scene, monkeypatch):
-    """Selections walked in windows (block and tile walks) by kernels built with MOVED_WALK are
-    the bytes of the default build's walks in one launch, and the walks did resume."""
-    pixels = np.random.default_rng(5).integers(0, random_scene[6:], (90, 2))
-    want = _selections(runtime(), random_scene, pixels)
-    monkeypatch.setattr(context, "KERNEL_CONSTANTS", {**KERNEL_CONSTANTS, **MOVED_WALK.defines()})
-    rt = Runtime(runtime().device)                 # its programs are built with MOVED_WALK
+def _windowed_runtime(monkeypatch, defines: dict[str, str]) -> tuple[Runtime, list[str]]:
+    """A runtime whose programs are built with ``defines`` over the kernel constants and whose
+    walks end every 64 iterations (walk windows), and the list the names of the launches that
+    resumed a walk are appended to."""
+    monkeypatch.setattr(context, "KERNEL_CONSTANTS", {**KERNEL_CONSTANTS, **defines})
+    rt = Runtime(runtime().device)
     rt.loop_limit = 64
     resumed = []
     launch = Runtime.launch
@@ -145,6 +144,15 @@ def test_selections_follow_another_walk_state_layout(random_scene, monkeypatch):
             resumed.append(name)
         launch(self, name, *args, **({} if walk_from is None else {"walk_from": walk_from}), **kwargs)
     monkeypatch.setattr(Runtime, "launch", counted)
+    return rt, resumed
+
+
+def test_selections_follow_another_walk_state_layout(random_scene, monkeypatch):
+    """Selections walked in windows (block and tile walks) by kernels built with MOVED_WALK are
+    the bytes of the default build's walks in one launch, and the walks did resume."""
+    pixels = np.random.default_rng(5).integers(0, random_scene[6:], (90, 2))
+    want = _selections(runtime(), random_scene, pixels)
+    rt, resumed = _windowed_runtime(monkeypatch, MOVED_WALK.defines())
     for gpu in (False, True):
         rt.gpu_shaped = gpu
         resumed.clear()
@@ -177,17 +185,7 @@ def test_fused_vrender_follows_another_volume_state_layout(random_scene, monkeyp
     for gpu in (False, True):
         base.gpu_shaped = gpu
         want[gpu] = _fused(base, random_scene)
-    monkeypatch.setattr(context, "KERNEL_CONSTANTS", {**KERNEL_CONSTANTS, **MOVED_VOLUME.defines()})
-    rt = Runtime(runtime().device)                 # its programs are built with MOVED_VOLUME
-    rt.loop_limit = 64
-    resumed = []
-    launch = Runtime.launch
-
-    def counted(self, name, *args, walk_from=None, **kwargs):
-        if walk_from:
-            resumed.append(name)
-        launch(self, name, *args, **({} if walk_from is None else {"walk_from": walk_from}), **kwargs)
-    monkeypatch.setattr(Runtime, "launch", counted)
+    rt, resumed = _windowed_runtime(monkeypatch, MOVED_VOLUME.defines())
     for gpu in (False, True):
         rt.gpu_shaped = gpu
         resumed.clear()
