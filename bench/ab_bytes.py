@@ -4,7 +4,7 @@ Renders a seeded procedural scene through every public path (rasterize with each
 image and a pixel subset, with gradients w.r.t. features and Gaussians; a cached selection
 rendered and back-propagated twice; rasterization with SH, RGB+ED and absgrad; the fused
 V-Render; a training step's gathered, concatenated and compacted selection with its transpose
-made ahead) under each install and compares every array's bytes (exit status 1 when any differs)::
+made ahead; registration's weight sums of a view's top contributors) under each install and compares every array's bytes (exit status 1 when any differs)::
 
     python bench/ab_bytes.py --base PYTHON_OR_CHECKOUT
 """
@@ -26,11 +26,17 @@ def outputs() -> dict[str, np.ndarray]:
     import torch
 
     import qr_cl
+    from qr_cl.app.registration.contributors import top_contributors
+    from qr_cl.app.registration.register import mask_weight_sums
     from qr_cl.app.scenes.procedural import procedural_scene
-    from qr_cl.app.training.selections import compact_selections, concat_selections, gather_rays
     from qr_cl.render import SelectionCache, blend, rasterize_plan
     from qr_cl.scene import orbit_cameras
-    from qr_cl.stages import prepare_backward, select
+    try:                                           # the selection operations' home in the install
+        from qr_cl.render import compact_selections, concat_selections, gather_rays, prepare_backward
+        from qr_cl.render import select_rays as select
+    except ImportError:                            # before render/rays.py: stages and training
+        from qr_cl.app.training.selections import compact_selections, concat_selections, gather_rays
+        from qr_cl.stages import prepare_backward, select
     out = {}
     g = procedural_scene(3000)
     W, H = 96, 64
@@ -82,6 +88,10 @@ def outputs() -> dict[str, np.ndarray]:
     r = blend(compact, table) if index is None else blend(compact, table, **{name: index})
     (r * torch.linspace(-1, 1, r.numel()).reshape(r.shape)).sum().backward()
     out["train-img"], out["train-grad"] = r.detach().numpy(), table.grad.numpy()
+    # registration: per picked Gaussian, its weight sums per mask (the transpose of a blend)
+    ids, weights = top_contributors(plan, pixels, 5)
+    masks = rng.integers(-1, 6, (len(pixels), 3))
+    out["register-rows"], out["register-sums"] = mask_weight_sums(plan, pixels, ids, weights, masks, 6)
     return out
 
 

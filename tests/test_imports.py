@@ -13,6 +13,10 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 #: The layers, bottom to top (docs/design.md, "Data flow and layers").
 LAYERS = ("qr_cl.runtime", "qr_cl.scene", "qr_cl.stages", "qr_cl.render", "qr_cl.backbone", "qr_cl.app")
+#: The one part of the app that reaches past render/ to the stages: the kernel benchmark, which
+#: times each stage alone (and launches bare kernels for the device's limits). Every other app
+#: path renders through render/ (docs/design.md, "One rendering path").
+STAGE_BENCHMARK = "qr_cl.app.bench"
 #: Where each package's sources lie (qr_cl.backbone is installed from backbone/, setup.cfg).
 SOURCES = {"qr_cl": ROOT / "qr_cl", "qr_cl.backbone": ROOT / "backbone"}
 
@@ -107,6 +111,18 @@ def private_imports(mods: dict[str, Path], importers: dict[str, Path]) -> list[s
     return bad
 
 
+def stage_imports(mods: dict[str, Path]) -> list[tuple[str, int, str]]:
+    """(importer, line, module) of each import of qr_cl.stages by a module of the app outside
+    :data:`STAGE_BENCHMARK`."""
+    bad = []
+    for m, path in mods.items():
+        if not m.startswith("qr_cl.app.") or m.startswith(STAGE_BENCHMARK + "."):
+            continue
+        bad += [(m, line, target) for line, target, _ in imports(m, path)
+                if target == "qr_cl.stages" or target.startswith("qr_cl.stages.")]
+    return bad
+
+
 def layer(module: str) -> int | None:
     """The position in :data:`LAYERS` of the layer holding ``module`` (None: the top package)."""
     return next((i for i, name in enumerate(LAYERS) if module == name or module.startswith(name + ".")), None)
@@ -137,6 +153,19 @@ def test_the_arrow_rule_catches_an_upward_import(tmp_path):
     module.write_text("def f():\n    from ..render import rasterize\n")
     found = upward_imports({**modules(), "qr_cl.scene.upward": module})
     assert found == [("qr_cl.scene.upward", 2, "qr_cl.render"), ("qr_cl.scene.upward", 2, "qr_cl.render.rasterize")]
+
+
+def test_the_app_renders_through_render_only():
+    bad = stage_imports(modules())
+    assert not bad, "app modules importing the stages:\n  " + "\n  ".join(f"{m}:{line} {t}" for m, line, t in bad)
+
+
+def test_the_stage_rule_catches_an_app_module_taking_a_stage(tmp_path):
+    module = tmp_path / "shortcut.py"
+    module.write_text("from ...stages import select\n")
+    assert stage_imports({**modules(), "qr_cl.app.training.shortcut": module}) == [
+        ("qr_cl.app.training.shortcut", 1, "qr_cl.stages")]
+    assert stage_imports({**modules(), "qr_cl.app.bench.shortcut": module}) == []
 
 
 @pytest.mark.parametrize("package", LAYERS)

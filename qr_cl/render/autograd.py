@@ -17,37 +17,10 @@ from typing import Callable
 import numpy as np
 import torch
 
-from ..runtime import (SPLAT, SPLAT_FLOATS, Runtime, channel_layout, check_channels, device_empty, device_rows, host_empty, row_parts,
-                       shared_array, table_parts, to_device)
-from ..stages import (BackwardIndex, RasterPlan, Selection, SelectionKernel, blend_backward, blend_backward_alpha,
-                      blend_forward, project_backward, rows_to_half, sh_backward, sh_colors, splat_backward,
-                      weight_grads)
-
-
-def host_rows(tensor: torch.Tensor) -> np.ndarray:
-    """A numpy view of a [R, C] tensor's rows (float32 on the CPU; converted only otherwise)."""
-    return tensor.detach().to("cpu", torch.float32).numpy()
-
-
-def table_rows(features: torch.Tensor) -> np.ndarray:
-    """A numpy view of a feature table [N, C]: a float16 table stays float16 (the kernels read it
-    as half and blend in float32), any other is :func:`host_rows`."""
-    if features.dtype == torch.float16:
-        return features.detach().to("cpu").numpy()
-    return host_rows(features)
-
-
-def image_dtype(features: torch.Tensor) -> torch.dtype:
-    """The dtype of a blend of ``features``: theirs, at least float32 (a float16 table's image
-    keeps the float32 sums)."""
-    return torch.promote_types(features.dtype, torch.float32)
-
-
-def _output(rows: int, channels: int, cstride: int, dtype=np.float32):
-    """A pooled host array [rows, cstride] of ``dtype`` the kernels write into, and the [rows,
-    channels] tensor over it that the caller receives (a strided view when channels < cstride)."""
-    host = host_empty((rows, cstride), dtype)
-    return host, torch.from_numpy(host if cstride == channels else host[:, :channels])
+from ..runtime import SPLAT, SPLAT_FLOATS, Runtime, channel_layout, check_channels, device_empty, device_rows, table_parts, to_device
+from ..stages import (BackwardIndex, RasterPlan, Selection, blend_backward_alpha, project_backward, sh_backward, sh_colors,
+                      splat_backward, weight_grads)
+from .rays import blend_rays, host_rows, table_rows, weighted_sums
 
 
 class BlendFunction(torch.autograd.Function):
@@ -73,55 +46,14 @@ class BlendFunction(torch.autograd.Function):
                 backward_index: BackwardIndex | None):
         ctx.selection, ctx.channels, ctx.dtype = selection, features.shape[1], features.dtype
         ctx.backward_index = BackwardIndex() if backward_index is None else backward_index
-        return _blend_image(selection, features, background)
+        return blend_rays(selection, features, background)
 
     @staticmethod
     def backward(ctx, grad_image: torch.Tensor):
         sel = ctx.selection
-        d_features = _feature_grad(sel, grad_image, ctx.channels, ctx.dtype, ctx.backward_index) \
-            if ctx.needs_input_grad[0] else None
+        d_features = weighted_sums(sel, grad_image, ctx.dtype, ctx.backward_index) if ctx.needs_input_grad[0] else None
         d_background = _background_grad(sel, grad_image) if ctx.needs_input_grad[2] else None
         return d_features, None, d_background, None
-
-
-def _blend_image(sel: Selection, features: torch.Tensor, background: torch.Tensor | None,
-                 kernel: SelectionKernel | None = None) -> torch.Tensor:
-    """image [P,C] (:func:`image_dtype`) of a Selection, written in place into a pooled host array:
-    the blend of each row part of the table added up, the background with the first (with the
-    selection's ``kernel`` fused in when it is still to run: :func:`blend_forward`)."""
-    rt = sel.plan.runtime
-    channels = features.shape[1]
-    cstride = channel_layout(channels)[2]
-    bg = None if background is None else background.detach().cpu().numpy()
-    table = table_rows(features)
-    host, image = _output(sel.n_rays, channels, cstride)
-    with shared_array(rt, host, "w") as out:
-        for r0, rows in table_parts(rt, table, cstride):
-            blend_forward(sel, rows, channels, None if r0 else bg, out=out, row0=r0, accumulate=r0 > 0,
-                          kernel=None if r0 else kernel)
-    return image.to(image_dtype(features))
-
-
-def _feature_grad(sel: Selection, grad_image: torch.Tensor, channels: int, dtype: torch.dtype,
-                  backward_index: BackwardIndex) -> torch.Tensor:
-    """dL/dfeatures [N,C] in ``dtype`` (the features') by the deterministic blend_backward, summed
-    in float32 rows (a row part at a time where they exceed a device buffer); for a float16 table
-    rounded on the device (rows_to_half) into the returned array."""
-    rt = sel.plan.runtime
-    cstride = channel_layout(channels)[2]
-    half = dtype == torch.float16
-    host, d = _output(sel.n_gaussians, channels, cstride, np.float16 if half else np.float32)
-    with device_rows(rt, host_rows(grad_image), cstride) as dimage:
-        for r0, r1 in row_parts(rt, sel.n_gaussians, cstride):
-            with shared_array(rt, host[r0:r1], "w") as out:
-                if half:
-                    rows_to_half(rt, blend_backward(sel, dimage, channels, row0=r0, n_rows=r1 - r0,
-                                                    backward_index=backward_index),
-                                 out)
-                else:
-                    blend_backward(sel, dimage, channels, out=out, row0=r0, n_rows=r1 - r0,
-                                   backward_index=backward_index)
-    return d.to(dtype)
 
 
 def _background_grad(sel: Selection, grad_image: torch.Tensor) -> torch.Tensor:
@@ -230,15 +162,16 @@ class RasterFunction(torch.autograd.Function):
     The selection is piecewise constant in the geometry and gets no gradient; for the K samplers
     alpha is returned detached (it is the walk's T, over Gaussians the selection does not keep),
     and so it is when the splats need no gradient. ``backward_index``: the selection's
-    :class:`~qr_cl.stages.BackwardIndex`, kept by the caller; ``kernel``: the selection's kernel
-    when it is still to run, fused with this blend (:func:`qr_cl.stages.blend_forward`).
+    :class:`~qr_cl.stages.BackwardIndex`, kept by the caller; ``image``: the blend of
+    ``features`` already made with the selection (:func:`qr_cl.render.rays.select_and_blend_rays`),
+    or None (blended here).
     """
 
     @staticmethod
     def forward(ctx, means2d: torch.Tensor | None, conics: torch.Tensor | None, opacities: torch.Tensor,
                 features: torch.Tensor, background: torch.Tensor | None, selection: Selection,
-                absgrad: AbsGradSink | None, backward_index: BackwardIndex, kernel: SelectionKernel | None):
-        image = _blend_image(selection, features, background, kernel)
+                absgrad: AbsGradSink | None, backward_index: BackwardIndex, image: torch.Tensor | None):
+        image = blend_rays(selection, features, background) if image is None else image
         t_walk = selection.t_walk.get()[:selection.n_rays]
         alpha = torch.from_numpy(1 - t_walk[:, None]).to(image.dtype)
         if selection.sampler != "volume" or not any(ctx.needs_input_grad[:3]):   # alpha is the geometry's
@@ -258,7 +191,7 @@ class RasterFunction(torch.autograd.Function):
                            for cols, need in zip((SPLAT.mean, SPLAT.conic, SPLAT.opacity), ctx.needs_input_grad[:3])]
             if ctx.absgrad is not None and ctx.needs_input_grad[0]:
                 ctx.absgrad(d_splats[:, SPLAT.absgrad])
-        d_features = _feature_grad(sel, grad_image, features.shape[1], features.dtype, ctx.backward_index) \
+        d_features = weighted_sums(sel, grad_image, features.dtype, ctx.backward_index) \
             if ctx.needs_input_grad[3] else None
         d_background = _background_grad(sel, grad_image) if ctx.needs_input_grad[4] else None
         return (*splat_grads, d_features, d_background, None, None, None, None)

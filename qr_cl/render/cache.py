@@ -32,8 +32,10 @@ class SelectionCache:
 
     Selections depend on geometry, camera, sampler and K only, so training can reuse one per view
     every epoch. Each entry keeps, beside its Selection, the selection's
-    :class:`~qr_cl.stages.BackwardIndex` (:meth:`backward_index`: what backwards of it make once
-    and share), counted in its bytes. :meth:`get` evicts the least recently used; :meth:`get_if_room` evicts nothing.
+    :class:`~qr_cl.stages.BackwardIndex` (what backwards of it make once and share), counted in
+    its bytes. :meth:`find` and :meth:`keep` (which evicts the least recently used) serve the
+    engine, which makes a selection together with its first blend; :meth:`get_if_room` evicts
+    nothing.
     A Selection larger than ``max_bytes`` is returned but not kept. Cache-free rendering (no cache
     passed to :func:`qr_cl.rasterize`) is the default.
     """
@@ -69,18 +71,23 @@ class SelectionCache:
         self._last_size = self._size(sel)
         return sel, self._last_size
 
-    def get(self, key: Hashable, make: Callable[[], Selection]) -> Selection:
-        """The Selection cached under ``key``, or ``make()``'s, which is then cached (evicting the
-        least recently used until it fits)."""
+    def find(self, key: Hashable) -> tuple[Selection, BackwardIndex] | None:
+        """The Selection cached under ``key`` and its backward index (now the most recently used),
+        or None; counted as a hit or a miss."""
         sel = self._hit(key)
-        if sel is not None:
-            return sel
-        sel, size = self._make(make)
+        return None if sel is None else self._entries[key]
+
+    def keep(self, key: Hashable, sel: Selection) -> BackwardIndex:
+        """Cache ``sel`` under ``key``, evicting the least recently used until it fits (a Selection
+        larger than ``max_bytes`` is not kept); the :class:`~qr_cl.stages.BackwardIndex` to pass
+        to its backwards (kept with it, or made for a selection not kept)."""
+        index = BackwardIndex()
+        size = self._last_size = self._size(sel)
         if size <= self.max_bytes:
             while self._entries and self.nbytes + size > self.max_bytes:
                 self._entries.popitem(last=False)
-            self._entries[key] = (sel, BackwardIndex())
-        return sel
+            self._entries[key] = (sel, index)
+        return index
 
     def get_if_room(self, key: Hashable, make: Callable[[], Selection]) -> Selection | None:
         """The Selection cached under ``key``; else, while a Selection the size of the last one
@@ -99,13 +106,6 @@ class SelectionCache:
         else:
             self.refused += 1
         return sel
-
-    def backward_index(self, key: Hashable) -> BackwardIndex | None:
-        """The :class:`~qr_cl.stages.BackwardIndex` kept with the Selection under ``key`` (None
-        when none is kept): pass them to its backward (the engine does), so that its transpose and
-        owner bounds are made once."""
-        entry = self._entries.get(key)
-        return None if entry is None else entry[1]
 
     def __len__(self) -> int:
         return len(self._entries)

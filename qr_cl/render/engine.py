@@ -17,11 +17,11 @@ import torch
 
 from ..runtime import (BufferLimitError, Runtime, channel_layout, check_buffer, check_channels, host_empty, table_parts,
                        trim_device_pool)
-from ..stages import (BackwardIndex, RasterPlan, Selection, SelectionKernel, deferred_select, entry_bytes,
-                      render_fused)
-from .autograd import AbsGradSink, ProjectFunction, RasterFunction, SHColors, View, host_rows, table_rows
+from ..stages import BackwardIndex, RasterPlan, Selection, render_fused
+from .autograd import AbsGradSink, ProjectFunction, RasterFunction, SHColors, View
 from .cache import SelectionCache, selection_key
 from .plan import make_plan
+from .rays import host_rows, image_pixels, ray_sets, select_and_blend_rays, table_rows
 
 
 def _tensor(x) -> torch.Tensor:
@@ -91,28 +91,6 @@ def sh_colors(sh, means: torch.Tensor, viewmat: np.ndarray | torch.Tensor, sh_de
     return SHColors.apply(means, sh[:, :need], camera_centre(viewmat), rt)
 
 
-def image_pixels(width: int, height: int) -> np.ndarray:
-    """Every pixel (x, y) of a width x height image, row-major: [H*W, 2] int32."""
-    ys, xs = np.mgrid[0:height, 0:width]
-    return np.stack([xs.ravel(), ys.ravel()], 1).astype(np.int32)
-
-
-def ray_sets(rt: Runtime, width: int, height: int, pixels: np.ndarray | None, k: int,
-             cstride: int) -> list[np.ndarray | None]:
-    """The rays of a render in sets whose image rows ([P, cstride] floats) and dense selection
-    rows ([P, K], and their transpose's keys: :func:`entry_bytes`) fit in one device buffer:
-    ``[pixels]`` when everything fits (None = the whole image), else consecutive runs of the pixel
-    coordinates [P_i, 2] (x, y), row-major for the whole image, so concatenating the sets' rows
-    gives the image."""
-    n_rays = width * height if pixels is None else len(pixels)
-    per_ray = max(4 * cstride, entry_bytes(rt) * k)
-    if n_rays * per_ray <= rt.max_buffer_bytes:
-        return [pixels]
-    pixels = image_pixels(width, height) if pixels is None else pixels
-    step = max(1, rt.max_buffer_bytes // per_ray)
-    return [pixels[i:i + step] for i in range(0, n_rays, step)]
-
-
 @dataclass
 class Render:
     """What :func:`render_view` returns: image [P,C] and alpha [P,1] tensors (P = H*W, row-major,
@@ -178,58 +156,67 @@ def render_view(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, 
     wanted. ``absgrad`` receives each blend's sums of |dL/dmean2d| [N,2] in the backward. ``rt``:
     the runtime to render on (the public calls pass the checked one: :mod:`qr_cl.render.selfcheck`).
 
-    A selection made here (not found in ``cache``) is made by its first blend, the selection kernel
-    with the blend fused in (:func:`qr_cl.stages.deferred_select`): an explicit step of
-    :func:`_render_rays`. Its backward index (transpose, owner bounds) is kept with it: in the
-    cache's entry, or by the autograd Functions of this render."""
+    A selection made here (not found in ``cache``) is made with the first table's blend in one
+    stage call (:func:`~qr_cl.render.rays.select_and_blend_rays`). Its backward index (transpose,
+    owner bounds) is kept with it: in the cache's entry, or by the autograd Functions of this
+    render."""
     n, channels = means.shape[0], features.shape[1]
     n_rays = view.width * view.height if view.pixels is None else len(view.pixels)
     if n == 0:
         bg = torch.zeros(channels) if background is None else background.detach()
         return Render(bg.expand(n_rays, channels).clone(), torch.zeros(n_rays, 1), None, [],
                       None if extra is None else torch.zeros(n_rays, extra.shape[1]))
-    geometry = [host_rows(t) for t in (means, quats, scales, opacities)]
-    plans: list[RasterPlan] = [] if splats is None else [splats.plan]
-    made: list[Splats2D] = [] if splats is None else [splats]
-
-    def selection(rays: np.ndarray | None) -> tuple[Selection, BackwardIndex, SelectionKernel | None]:
-        """The selection of ``rays``, its backward index and its kernel if still to run (made here)."""
-        kernel = None
-
-        def make() -> Selection:
-            nonlocal kernel
-            if not plans:
-                plans.append(make_plan(rt, *geometry, view.viewmat, view.K, view.width, view.height, view.near,
-                                       view.far))
-            sel, kernel = deferred_select(plans[0], view.sampler, max(view.k, 1), rays)
-            return sel
-        if cache is None:
-            return make(), BackwardIndex(), kernel
-        key = selection_key(*geometry, view.viewmat, view.K, view.width, view.height, view.near, view.far,
-                            view.sampler, view.k, rays)
-        sel = cache.get(key, make)
-        return sel, cache.backward_index(key) or BackwardIndex(), kernel
-
-    def splats_of(plan: RasterPlan) -> Splats2D:
-        if not made:
-            means2d = conics = None
-            if _grad_wanted(means, quats, scales, viewmat):
-                _, means2d, conics, _ = project_view(means, quats, scales, opacities, [view],
-                                                     None if viewmat is None else viewmat[None], [plan])
-                means2d, conics = means2d[0], conics[0]
-            made.append(Splats2D(plan, means2d, conics, opacities))
-        return made[0]
-
+    camera = _Camera((means, quats, scales, opacities), view, cache, viewmat, splats, rt)
     tables = [(features, background)] + ([] if extra is None else [(extra, None)])
     cstride = max(channel_layout(table.shape[1])[2] for table, _ in tables)
     parts: list[tuple[Selection, list[torch.Tensor], torch.Tensor]] = []
     for rays in ray_sets(rt, view.width, view.height, view.pixels, view.k, cstride):
-        parts += _render_rays(selection, splats_of, rays, view, tables, absgrad)
+        parts += _render_rays(camera, rays, tables, absgrad)
     trim_device_pool(rt)
     sels = [sel for sel, _, _ in parts]
     images = [parts[0][1][t] if len(parts) == 1 else torch.cat([p[1][t] for p in parts]) for t in range(len(tables))]
     alpha = parts[0][2] if len(parts) == 1 else torch.cat([p[2] for p in parts])
     return Render(images[0], alpha, sels[0].plan, sels, images[1] if extra is not None else None)
+
+
+class _Camera:
+    """What the ray sets of one :func:`render_view` share: the Gaussians (tensors, and their host
+    rows), the view, the cache, the plan (made when first needed, unless the caller's ``splats``
+    bring one) and the 2-D stage of the splats (made once, from the first selection's plan)."""
+
+    def __init__(self, gaussians: tuple[torch.Tensor, ...], view: View, cache: SelectionCache | None,
+                 viewmat: torch.Tensor | None, splats: Splats2D | None, rt: Runtime) -> None:
+        self.gaussians, self.view, self.cache, self.viewmat, self.rt = gaussians, view, cache, viewmat, rt
+        self.geometry = [host_rows(t) for t in gaussians]
+        self.plan = None if splats is None else splats.plan
+        self.splats = splats
+
+    def planned(self) -> RasterPlan:
+        """The view's plan (made now if it is not yet)."""
+        if self.plan is None:
+            view = self.view
+            self.plan = make_plan(self.rt, *self.geometry, view.viewmat, view.K, view.width, view.height, view.near,
+                                  view.far)
+        return self.plan
+
+    def key(self, rays: np.ndarray | None) -> str:
+        """The cache key of the selection of ``rays``."""
+        view = self.view
+        return selection_key(*self.geometry, view.viewmat, view.K, view.width, view.height, view.near, view.far,
+                             view.sampler, view.k, rays)
+
+    def splats_of(self, plan: RasterPlan) -> Splats2D:
+        """The 2-D stage of ``plan``'s splats (the first asked for serves every ray set), through
+        :class:`~qr_cl.render.autograd.ProjectFunction` when a gradient w.r.t. the geometry is wanted."""
+        if self.splats is None:
+            means, quats, scales, opacities = self.gaussians
+            means2d = conics = None
+            if _grad_wanted(means, quats, scales, self.viewmat):
+                _, means2d, conics, _ = project_view(means, quats, scales, opacities, [self.view],
+                                                     None if self.viewmat is None else self.viewmat[None], [plan])
+                means2d, conics = means2d[0], conics[0]
+            self.splats = Splats2D(plan, means2d, conics, opacities)
+        return self.splats
 
 
 def fused_volume(rt: Runtime, means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
@@ -255,29 +242,30 @@ def fused_volume(rt: Runtime, means: torch.Tensor, quats: torch.Tensor, scales: 
     return torch.from_numpy(image), torch.from_numpy(alpha), plan, depth
 
 
-def _render_rays(selection, splats_of, rays: np.ndarray | None, view: View, tables: list[tuple],
+def _render_rays(camera: _Camera, rays: np.ndarray | None, tables: list[tuple],
                  absgrad: AbsGradSink | None) -> list[tuple]:
     """(Selection, [image [P,C] of each feature table], alpha [P,1]) of the rays ``rays`` (None =
     the whole image), tables being (features [N,C], background [C] or None): one entry, or several
-    when a selection does not fit in a device buffer and the rays are halved. A selection still to
-    be made is made by the first table's blend, its kernel fused in; if that blend fails, by its
-    kernel alone (a cache may keep the selection)."""
+    when a selection does not fit in a device buffer and the rays are halved. The selection is
+    the cache's, or made with the first table's blend (and then cached)."""
+    view, cache = camera.view, camera.cache
+    key = None if cache is None else camera.key(rays)
+    found = None if cache is None else cache.find(key)
+    image = None
     try:
-        sel, backward_index, kernel = selection(rays)
+        if found is None:
+            sel, image = select_and_blend_rays(camera.planned(), view.sampler, max(view.k, 1), rays, *tables[0])
+            backward_index = BackwardIndex() if cache is None else cache.keep(key, sel)
+        else:
+            sel, backward_index = found
     except BufferLimitError:
         if rays is not None and len(rays) < 2:
             raise
         rays = image_pixels(view.width, view.height) if rays is None else rays
         half = len(rays) // 2
-        return (_render_rays(selection, splats_of, rays[:half], view, tables, absgrad)
-                + _render_rays(selection, splats_of, rays[half:], view, tables, absgrad))
-    outs = []
-    try:
-        s2d = splats_of(sel.plan)
-        for features, background in tables:
-            outs.append(RasterFunction.apply(s2d.means2d, s2d.conics, s2d.opacities, features, background, sel,
-                                             absgrad, backward_index, None if outs else kernel))
-    finally:
-        if kernel is not None and not outs:
-            kernel.run()                     # made even if no blend ran (it may be cached)
+        return _render_rays(camera, rays[:half], tables, absgrad) + _render_rays(camera, rays[half:], tables, absgrad)
+    s2d = camera.splats_of(sel.plan)
+    outs = [RasterFunction.apply(s2d.means2d, s2d.conics, s2d.opacities, features, background, sel, absgrad,
+                                 backward_index, None if t else image)
+            for t, (features, background) in enumerate(tables)]
     return [(sel, [image for image, _ in outs], outs[0][1])]

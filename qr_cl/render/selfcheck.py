@@ -31,7 +31,8 @@ from ..runtime import (KERNEL_CONSTANTS, SAMPLERS, NoDeviceError, Runtime, imple
 from ..scene import look_at
 from ..stages import blend_ref, check_pixels, check_sampler, select_ref, vrender_ref
 from .autograd import View
-from .engine import feature_tensor, fused_volume, gaussian_tensors, image_pixels, render_view
+from .engine import feature_tensor, fused_volume, gaussian_tensors, render_view
+from .rays import image_pixels
 from .meta import RenderMeta
 
 #: The check scene: Gaussians, image size (px), channels, K of the K samplers.

@@ -21,7 +21,8 @@ import pyopencl.array as cla
 
 from ..runtime import (SPLAT_FLOATS, TILE, Runtime, channel_layout, check_buffer, device_empty, device_zeros,
                        padded_vector, streamed, to_device, walk_windows)
-from .select import Selection, SelectionKernel
+from .binning import RasterPlan
+from .select import Selection, pending_select
 from .transpose import Transpose, backward_order, longest_segment, transpose
 
 OWNERS_PER_CORE = 1   # the CPU backward scatter's work-items per compute unit
@@ -110,9 +111,25 @@ def longest_entries(sel: Selection) -> int:
     return int(sel.spans()[1].max(initial=0))
 
 
+def _image(rt: Runtime, n_rays: int, features: cla.Array, cstride: int, out: cla.Array | None) -> cla.Array:
+    """The image [n_rays, cstride] float32 a blend of ``features`` (checked: float32 or float16
+    rows of cstride) writes: ``out`` (checked) or a device array from the runtime's pool."""
+    _check_rows(features, features.shape[0], cstride, "features", half=True)
+    check_buffer(rt, 4 * n_rays * cstride, f"the image of {n_rays} rays x {cstride} channels")
+    image = device_empty(rt, (n_rays, cstride), np.float32) if out is None else out
+    _check_rows(image, n_rays, cstride, "out")
+    return image
+
+
+def _background(rt: Runtime, background: np.ndarray | None, channels: int, cstride: int, image: cla.Array) -> dict:
+    """The blend kernels' background arguments (and whether the image is written streaming)."""
+    return dict(background=to_device(rt, padded_vector(background, channels, cstride)),
+                use_bg=background is not None, stream=streamed(image.nbytes))
+
+
 def blend_forward(sel: Selection, features: cla.Array, channels: int,
                   background: np.ndarray | None = None, out: cla.Array | None = None, row0: int = 0,
-                  accumulate: bool = False, kernel: SelectionKernel | None = None) -> cla.Array:
+                  accumulate: bool = False) -> cla.Array:
     """image [P, cstride] = sum_j w[p,j] features[id[p,j]] (+ t_rem[p] * background).
 
     features: float32 or float16 [R, cstride] device rows (cstride from channel_layout(channels);
@@ -121,36 +138,22 @@ def blend_forward(sel: Selection, features: cla.Array, channels: int,
     background: [channels] or None (no background term); out: an optional float32 [P, cstride]
     device array to write into (else one from the runtime's memory pool); ``accumulate``: add the
     blend to ``out`` (the parts after the first).
-    Rays as in the Selection; for the full image row p = y * width + x. ``kernel``: the
-    selection's kernel when it is still to run (:func:`qr_cl.stages.select.deferred_select`),
-    run here with this blend fused in (only for the first part: row0 0, not accumulated); the
-    caller must not run it again.
+    Rays as in the Selection; for the full image row p = y * width + x.
     """
     rt = sel.plan.runtime
     vw, nv, cstride = channel_layout(channels, rt.narrow_rows)
     _check_part(sel, row0, features.shape[0], "features")
-    _check_rows(features, features.shape[0], cstride, "features", half=True)
-    check_buffer(rt, 4 * sel.n_rays * cstride, f"the image of {sel.n_rays} rays x {cstride} channels")
     if accumulate and out is None:
         raise ValueError("blend_forward(accumulate=True) adds to an image: pass it as out")
-    image = device_empty(rt, (sel.n_rays, cstride), np.float32) if out is None else out
-    _check_rows(image, sel.n_rays, cstride, "out")
+    image = _image(rt, sel.n_rays, features, cstride, out)
     if sel.n_rays == 0:
-        return image
-    bg = dict(background=to_device(rt, padded_vector(background, channels, cstride)),
-              use_bg=background is not None, stream=streamed(image.nbytes))
-    if kernel is not None:
-        if row0 or accumulate:
-            raise ValueError("a selection's kernel is fused with its first blend (row0 0, not accumulated)")
-        kernel.run(defines={"VW": vw, "NV": nv, "BLEND_ROWS": 1, **row_defines(features)}, features=features,
-                   n_rows=features.shape[0], cstride=cstride, image=image, **bg)
         return image
     size, full = sel.launch()
     plan = sel.plan
     args = dict(offsets=sel.offsets, count=sel.count, n_entries=sel.ids.size, sel_ids=sel.ids, sel_w=sel.weights,
                 features=features, row0=row0, n_rows=features.shape[0], cstride=cstride, full=full,
                 n_rays=sel.n_rays, width=plan.width, height=plan.height, tiles_x=plan.tiles_x, t_rem=sel.t_rem,
-                accumulate=accumulate, image=image, **bg)
+                accumulate=accumulate, image=image, **_background(rt, background, channels, cstride, image))
     if rt.gpu_shaped:
         defines, size2, local = group_shape(rt, size, cstride)
         rt.launch("blend_group", size2, defines={**defines, **row_defines(features)}, local_size=local, **args)
@@ -162,6 +165,29 @@ def blend_forward(sel: Selection, features: cla.Array, channels: int,
     rt.launch("blend", (size, n_chunks), defines={"VW": vw, "NV": nv, **row_defines(features)}, local_size=local,
               **args)
     return image
+
+
+def select_and_blend(plan: RasterPlan, sampler: str, k: int, pixels: np.ndarray | None, features: cla.Array,
+                     channels: int, background: np.ndarray | None = None,
+                     out: cla.Array | None = None) -> tuple[Selection, cla.Array]:
+    """The selection of ``sampler`` with K = ``k`` for the whole image or the rays ``pixels``
+    [P,2] (as :func:`qr_cl.stages.select`) and its blend with ``features`` (as
+    :func:`blend_forward`: the table's rows from 0, all N or a first row part): (the Selection,
+    the image [P, cstride]). On CPU-shaped runtimes without a loop limit the K samplers blend each
+    ray in the selection kernel right after selecting it (``BLEND_ROWS``: the same selection and
+    image bytes, and the selection's entries are not read back); elsewhere the selection is made,
+    then blended. Either way the Selection is complete when returned."""
+    sel, kernel = pending_select(plan, sampler, k, pixels)
+    if kernel is None:
+        return sel, blend_forward(sel, features, channels, background, out)
+    rt = plan.runtime
+    vw, nv, cstride = channel_layout(channels, rt.narrow_rows)
+    _check_part(sel, 0, features.shape[0], "features")
+    image = _image(rt, sel.n_rays, features, cstride, out)
+    kernel.run(defines={"VW": vw, "NV": nv, "BLEND_ROWS": 1, **row_defines(features)}, features=features,
+               n_rows=features.shape[0], cstride=cstride, image=image,
+               **_background(rt, background, channels, cstride, image))
+    return sel, image
 
 
 def blend_backward(sel: Selection, dimage: cla.Array, channels: int, out: cla.Array | None = None,

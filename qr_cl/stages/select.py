@@ -31,8 +31,8 @@ from .binning import SORT_BYTES_PER_KEY, RasterPlan
 @dataclass(frozen=True, kw_only=True, eq=False)
 class Selection:
     """Per-ray (Gaussian id, weight) lists on the device: a value, made by :func:`select` or
-    :func:`deferred_select` (or derived from one, e.g. by training's
-    :func:`qr_cl.app.training.selections.derived`), constructed by keyword only.
+    :func:`qr_cl.stages.blend.select_and_blend` (or derived from one: :mod:`qr_cl.stages.selections`),
+    constructed by keyword only, complete when returned.
 
     The contract: its fields are never reassigned (frozen), and no stage writes into it or its
     arrays once the selection kernel has run; the stages that read it (blend, transpose) return
@@ -48,7 +48,6 @@ class Selection:
     Gaussians before normalization (T^Q; the final T for volume), ``t_rem`` the background weight.
     ``k`` is K (0 for volume). The ids index a table of :attr:`n_gaussians` rows: the plan's N
     Gaussians, or ``n_rows`` rows when set (a compact table of the Gaussians some rays use).
-    A selection from :func:`deferred_select` is made once its :class:`SelectionKernel` has run.
     """
 
     plan: RasterPlan
@@ -227,11 +226,10 @@ def entry_bytes(rt: Runtime) -> int:
 
 @dataclass(frozen=True, eq=False)
 class SelectionKernel:
-    """The selection kernel of a Selection from :func:`deferred_select`, not yet enqueued: the
-    walk of ``sampler`` over the selection's rays writing ``outputs`` (its device arrays). Its
-    caller enqueues it once, alone (:meth:`run`) or with the first blend of the selection fused in
-    (:func:`qr_cl.stages.blend.blend_forward` with ``kernel``), before anything reads the
-    selection."""
+    """The selection kernel of a Selection from :func:`pending_select`, not yet enqueued: the
+    walk of ``sampler`` over the selection's rays writing ``outputs`` (its device arrays). The
+    stage that asked for it enqueues it once, alone (:meth:`run`, :func:`select`) or with a blend
+    fused in (:func:`qr_cl.stages.blend.select_and_blend`), before it returns the selection."""
 
     walk: Walk
     sampler: str
@@ -257,19 +255,19 @@ def select(plan: RasterPlan, sampler: str = DEFAULTS.sampler, k: int = DEFAULTS.
 
     Cost is proportional to the number of rays (and their tile lists), not to width * height.
     """
-    selection, kernel = deferred_select(plan, sampler, k, pixels)
+    selection, kernel = pending_select(plan, sampler, k, pixels)
     if kernel is not None:
         kernel.run()
     return selection
 
 
-def deferred_select(plan: RasterPlan, sampler: str = DEFAULTS.sampler, k: int = DEFAULTS.k,
-                    pixels=None) -> tuple[Selection, SelectionKernel | None]:
-    """:func:`select`, its kernel left to the caller where a blend can be fused into it: (the
-    Selection, its :class:`SelectionKernel` not yet enqueued) for the K samplers on CPU-shaped
-    runtimes without a loop limit, so that the first blend runs it with the blend fused in
-    (each ray blended right after it is selected: the same selection and image); else (the
-    Selection made, None)."""
+def pending_select(plan: RasterPlan, sampler: str, k: int, pixels=None) -> tuple[Selection, SelectionKernel | None]:
+    """The two selection stages' common part (:func:`select`, :func:`qr_cl.stages.blend.select_and_blend`),
+    which they alone call: (the Selection, its :class:`SelectionKernel` not yet enqueued) for the
+    K samplers on CPU-shaped runtimes without a loop limit, where a blend can be fused into the
+    kernel (each ray blended right after it is selected: the same selection and image); else
+    (the Selection made, None). The Selection must not be read, nor returned by the stage, before
+    its kernel has run."""
     k = check_sampler(sampler, k)
     rt = plan.runtime
     q = rt.queue

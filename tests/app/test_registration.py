@@ -11,11 +11,11 @@ import pytest
 from qr_cl.app.cli import main
 from qr_cl.app.evaluation.metrics import UNLABELLED, miou_macc
 from qr_cl.app.evaluation.scoring import predict
-from qr_cl.app.registration import register_ref
 from qr_cl.app.registration.contributors import top_contributors
 from qr_cl.app.registration.register import ViewMasks, register, scene_views
 from qr_cl.app.training.rays import camera_plan
 from qr_cl.app.scenes.folders import load_scene_folder
+from tests.app import register_twin
 from tests.render.test_top_contributors import meta_of, query
 
 
@@ -27,7 +27,7 @@ def levels(tiny_room):
 
 def _twin(scene, views, k):
     metas = [camera_plan(scene.gaussians, v.camera).meta() for v in views]
-    return register_ref.register(metas, views, len(scene.gaussians), k)
+    return register_twin.register(metas, views, len(scene.gaussians), k)
 
 
 def test_contributors_are_gsplats_top_contributors(random_scene):

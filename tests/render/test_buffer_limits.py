@@ -8,7 +8,7 @@ import torch
 import pyopencl as cl
 
 import qr_cl
-from qr_cl.render import autograd
+from qr_cl.render import rays
 from qr_cl.runtime import BufferLimitError, Runtime, memory, row_parts, runtime
 from tests.conftest import make_random_scene
 
@@ -176,7 +176,7 @@ def test_a_table_in_row_parts_renders_and_differentiates_as_the_whole(monkeypatc
             limit_buffers(patch, table.element_size() * n * PART_CHANNELS // 3 + 64)
             patch.setattr(memory, "shared_array", spy)
             patch.setattr(memory, "row_parts", counted)                  # the table's parts (table_parts)
-            patch.setattr(autograd, "row_parts", counted)                # dF's
+            patch.setattr(rays, "row_parts", counted)                    # dF's
             split = part_render(scene, f, sampler, background, pixels)
         assert not isinstance(split[3], list)                        # the rays were not split
         row_bytes = table.element_size() * PART_CHANNELS

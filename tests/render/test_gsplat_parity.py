@@ -322,8 +322,8 @@ def test_extra_signals_share_one_selection(random_scene, monkeypatch, sampler, k
     colors, signals = rng.random((len(m), 3)).astype(np.float32), rng.normal(size=(len(m), 64)).astype(np.float32)
     viewmats, Ks = turned_cameras(v, K)
     bg = torch.tensor([[0.1, 0.2, 0.3]] * 2)
-    made, select = [], engine.deferred_select
-    monkeypatch.setattr(engine, "deferred_select", lambda *a, **kw: made.append(1) or select(*a, **kw))
+    made, select = [], engine.select_and_blend_rays
+    monkeypatch.setattr(engine, "select_and_blend_rays", lambda *a, **kw: made.append(1) or select(*a, **kw))
     one = tensors(m, q, s, o, colors, signals, grad=True)
     image, alpha, meta = qr_cl.rasterization(*one[:5], viewmats, Ks, w, h, sampler=sampler, k=k, backgrounds=bg,
                                              render_mode="RGB+ED", extra_signals=one[5])

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 import qr_cl
-from qr_cl.render.autograd import table_rows
+from qr_cl.render.rays import table_rows
 from qr_cl.runtime import row_parts, runtime
 
 CHANNELS = 40          # padded rows (cstride 48) and more than one vector

@@ -8,7 +8,7 @@ import pytest
 from qr_cl.render import rasterize_plan
 from qr_cl.runtime import channel_layout, memory, padded_rows, shared_array
 from qr_cl.stages import blend as blend_stage
-from qr_cl.stages import blend_backward, blend_forward, blend_ref, deferred_select, render_fused, select
+from qr_cl.stages import blend_backward, blend_forward, blend_ref, render_fused, select, select_and_blend
 
 RTOL = 1e-5
 
@@ -148,10 +148,10 @@ def test_pixel_subset_blend_equals_full_rows(plan):
 
 @pytest.mark.parametrize("sampler", ["quantile", "topk", "stratified"])
 @pytest.mark.parametrize("channels,subset", [(3, False), (37, True), (512, False), (2048, True)])
-def test_deferred_selection_blended_in_its_kernel_equals_select_then_blend(plan, sampler, channels, subset):
-    """deferred_select's kernel run by blend_forward runs the selection kernel with the blend
-    fused in (CPU shapes): the same selection and the same image bytes as the two kernels, also
-    with a background and for a pixel subset; the kernel run alone gives the same selection.
+def test_select_and_blend_equals_select_then_blend(plan, sampler, channels, subset):
+    """select_and_blend runs the selection kernel with the blend fused in (CPU shapes): the same
+    selection and the same image bytes as the two kernels, also with a background and for a pixel
+    subset, and its selection blends again as select's does.
 
     Bytes on PoCL. Intel's CPU runtime compiles the selection arithmetic of the fused build apart
     and differs in the last bits (up to 1e-6 absolute here): within 1e-5 of the largest value."""
@@ -164,19 +164,11 @@ def test_deferred_selection_blended_in_its_kernel_equals_select_then_blend(plan,
     pixels = rng.integers(0, [plan.width, plan.height], (300, 2)) if subset else None
     eager = select(plan, sampler, 10, pixels)
     want = blend_forward(eager, features, channels, background).get()
-    deferred, kernel = deferred_select(plan, sampler, 10, pixels)
-    assert kernel is not None
-    got = blend_forward(deferred, features, channels, background, kernel=kernel).get()
-    same(got, want)
-    same(blend_forward(deferred, features, channels).get(), blend_forward(eager, features, channels).get())
-    alone, kernel = deferred_select(plan, sampler, 10, pixels)
-    kernel.run()
-    with pytest.raises(ValueError, match="first blend"):
-        blend_forward(alone, features, channels, out=blend_forward(alone, features, channels), accumulate=True,
-                      kernel=kernel)
-    for sel in (deferred, alone):
-        for key, value in eager.host().items():
-            same(sel.host()[key], value, err_msg=key)
+    fused, got = select_and_blend(plan, sampler, 10, pixels, features, channels, background)
+    same(got.get(), want)
+    same(blend_forward(fused, features, channels).get(), blend_forward(eager, features, channels).get())
+    for key, value in eager.host().items():
+        same(fused.host()[key], value, err_msg=key)
 
 
 @pytest.mark.parametrize("shift", [0, 1, 4])
@@ -248,7 +240,7 @@ def row_split(n: int) -> list[tuple[int, int]]:
 def test_row_parts_add_up_to_the_whole_table(plan, monkeypatch, sampler, k, channels, half, launch):
     """A table in row parts: each part's blend equals the twin of that part (entries of other
     Gaussians blend nothing), the parts accumulated into one image equal the whole table's blend
-    to float rounding, the first blend fused into a deferred selection or not; each part's dF is
+    to float rounding, the first blend fused with its selection (select_and_blend) or not; each part's dF is
     the whole table's rows of dF, byte for byte (scatter and gather, half tables' float rows)."""
     monkeypatch.setattr(plan.runtime, "gpu_shaped", launch == "gpu")
     rng = np.random.default_rng(channels)
@@ -258,18 +250,24 @@ def test_row_parts_add_up_to_the_whole_table(plan, monkeypatch, sampler, k, chan
     table = features.astype(np.float16) if half else features
     background = rng.standard_normal(channels).astype(np.float32)
     rt = plan.runtime
-    for defer in (False, True):
-        sel, kernel = deferred_select(plan, sampler, k) if defer else (select(plan, sampler, k), None)
-        whole = blend_forward(select(plan, sampler, k), cla.to_device(rt.queue, table), channels, background).get()
-        image = memory.device_empty(rt, (sel.n_rays, cstride))
+    whole = blend_forward(select(plan, sampler, k), cla.to_device(rt.queue, table), channels, background).get()
+    for fuse in (False, True):
+        sel = None if fuse else select(plan, sampler, k)
+        image = memory.device_empty(rt, (whole.shape[0], cstride))
         for i, (r0, r1) in enumerate(row_split(n)):
             part = cla.to_device(rt.queue, table[r0:r1])
-            alone = blend_forward(sel, part, channels, row0=r0, kernel=None if i else kernel).get()[:, :channels]
+            if sel is None:                    # the first part's blend made with its selection
+                sel, alone = select_and_blend(plan, sampler, k, None, part, channels)
+            else:
+                alone = blend_forward(sel, part, channels, row0=r0)
             h = sel.host()
             want = blend_ref.blend(h["ids"], h["weights"], table[r0:r1, :channels], row0=r0)
             scale = blend_ref.blend(h["ids"], np.abs(h["weights"]), np.abs(table[:, :channels]))
-            assert_rows_close(alone, want, scale.max(axis=1, keepdims=True))
-            blend_forward(sel, part, channels, None if i else background, out=image, row0=r0, accumulate=i > 0)
+            assert_rows_close(alone.get()[:, :channels], want, scale.max(axis=1, keepdims=True))
+            if fuse and i == 0:
+                select_and_blend(plan, sampler, k, None, part, channels, background, out=image)
+            else:
+                blend_forward(sel, part, channels, None if i else background, out=image, row0=r0, accumulate=i > 0)
         scale = np.abs(whole).max(axis=1, keepdims=True)
         assert_rows_close(image.get()[:, :channels], whole[:, :channels], scale, rtol=1e-6)
     dimage = cla.to_device(rt.queue, rng.standard_normal((sel.n_rays, cstride)).astype(np.float32))

@@ -7,10 +7,9 @@ import numpy as np
 
 from ...runtime import DEFAULTS
 from ...scene import Gaussians, quat_to_rotmat
-from ...stages import select
+from ...render import ray_entries, select_rays
 from ..scenes.folders import SceneData
 from ..training.rays import view_plan
-from ..training.selections import ray_entries
 
 MIN_OPACITY = 0.1
 
@@ -66,6 +65,6 @@ def reached_gaussians(scene: SceneData, sampler: str = DEFAULTS.sampler, k: int 
     fit) learns only these; GS-Net predicts every Gaussian from its neighbourhood."""
     reached = np.zeros(len(scene.gaussians), bool)
     for view in range(len(scene.frames)):
-        sel = select(view_plan(scene, view), sampler, k)
+        sel = select_rays(view_plan(scene, view), sampler, k)
         reached[sel.ids.get()[ray_entries(*sel.spans())]] = True
     return reached

@@ -24,10 +24,9 @@ from __future__ import annotations
 import numpy as np
 from tqdm import tqdm
 
-from ...render import rasterize_plan
+from ...render import rasterize_plan, select_rays
 from ...runtime import SPLAT, SPLAT_FLOATS
 from ...scene import Camera, Gaussians
-from ...stages import select
 from ..scenes.folders import SceneData
 from ..scenes.views import dense_view
 from .claims import Stat
@@ -109,19 +108,19 @@ def ray_depth_statistics(name: str, kind: str, gaussians: Gaussians, cameras: li
     spreads, entries = [], []
     for cam in cameras:
         plan = rasterize_plan(*host, cam.viewmat, cam.K, cam.width, cam.height)
-        hit = np.flatnonzero(select(plan, "volume", 1).count.get()[:cam.width * cam.height] > 0)
+        hit = np.flatnonzero(select_rays(plan, "volume", 1).count.get()[:cam.width * cam.height] > 0)
         rays = np.sort(rng.choice(hit, min(DEPTH_RAYS // len(cameras), len(hit)), replace=False))
         if not len(rays):
             continue
         pixels = np.stack([rays % cam.width, rays // cam.width], 1).astype(np.int32)
-        walk = select(plan, "volume", 1, pixels).host()
+        walk = select_rays(plan, "volume", 1, pixels).host()
         w = walk["weights"].astype(np.float64)
         w /= np.maximum(w.sum(1, keepdims=True), 1e-30)
         cdf = np.cumsum(w, 1)
         depths = plan.splats.get().reshape(-1, SPLAT_FLOATS)[np.maximum(walk["ids"], 0), SPLAT.depth]
         ray_labels = None if labels is None else np.where(walk["ids"] >= 0, labels[np.maximum(walk["ids"], 0)], -1)
         for sampler, stats in per.items():
-            picks = select(plan, sampler, k, pixels).host()
+            picks = select_rays(plan, sampler, k, pixels).host()
             pos = pick_positions(walk["ids"], picks["ids"])
             front, behind = pick_statistics(cdf, w, pos)
             weights = placed(picks["weights"].astype(np.float64), pos, w.shape[1])

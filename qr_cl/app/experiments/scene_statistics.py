@@ -7,9 +7,8 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from ...render import rasterize_plan
+from ...render import rasterize_plan, select_rays
 from ...scene import Camera, Gaussians, orbit_cameras
-from ...stages import select
 from ..images import plt
 from ..scenes.folders import SceneData
 from ..scenes.views import dense_view, real_views
@@ -26,7 +25,7 @@ def volume_selection(gaussians: Gaussians, camera: Camera, pixels: np.ndarray | 
     g = gaussians
     plan = rasterize_plan(g.means, g.quats, g.scales, g.opacities, camera.viewmat, camera.K,
                           camera.width, camera.height)
-    return select(plan, "volume", 1, pixels)
+    return select_rays(plan, "volume", 1, pixels)
 
 
 def entries_per_ray(gaussians: Gaussians, camera: Camera) -> np.ndarray:

@@ -6,9 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ...render import rasterize
+from ...render import Selection, rasterize
 from ...runtime import SPLAT, SPLAT_FLOATS
-from ...stages import Selection
 from ..images import plot_transmittance_profiles
 from ..scenes.folders import SceneData
 from .plan import LABELS, Plan

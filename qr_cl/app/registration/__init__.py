@@ -1,3 +1,3 @@
 """Dr.Splat's training-free registration: mask features onto the Gaussians through each pixel's
-top contributors (:mod:`.register`, its float64 twin :mod:`.register_ref`, the command ``qr-cl
+top contributors (:mod:`.register`, its float64 twin in tests/app/register_twin.py, the command ``qr-cl
 register`` in :mod:`.command`)."""

@@ -3,13 +3,13 @@ define them: the K Gaussians with the largest V-Render weights alpha_i T_i (T ov
 front, the whole walk), in depth order, each with that weight.
 
 The V-Render selection of the pixels holds every weight; the K largest of each ray are kept on the
-host (ties: the nearer first, as :func:`qr_cl.stages.select_ref.topk_select`), so the weights are
+host (ties: the nearer first, as the top-K sampler's twin orders them), so the weights are
 the full render's, not a top-K sampler's re-composited ones."""
 from __future__ import annotations
 
 import numpy as np
 
-from ...stages import RasterPlan, select
+from ...render import RasterPlan, select_rays
 
 
 def top_contributors(plan: RasterPlan, pixels: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
@@ -18,7 +18,7 @@ def top_contributors(plan: RasterPlan, pixels: np.ndarray, k: int) -> tuple[np.n
     empty slots), picks in depth order and first in their row."""
     if k < 1:
         raise ValueError(f"k={k}: a pixel needs at least one contributor")
-    host = select(plan, "volume", 1, pixels).host()
+    host = select_rays(plan, "volume", 1, pixels).host()
     ids, weights = host["ids"], host["weights"]
     if ids.shape[1] > k:
         keep = np.sort(np.argsort(-weights, axis=1, kind="stable")[:, :k], axis=1)

@@ -6,14 +6,14 @@ w = alpha_i T_i), weighted by w. A Gaussian's feature is the weighted sum over e
 normalised to a unit row (the weighted mean's direction); Gaussians that no masked pixel picks get
 a zero row, which the evaluation scores as unlabelled. Dr.Splat's product quantization is left out.
 
-The weighted sum is the feature backward of a blend (:func:`qr_cl.stages.blend_backward`:
+The weighted sum is the transpose of a blend (:func:`qr_cl.render.weighted_sums`:
 dF[g] = sum over entries of w dImage[p]). dImage holds each pixel's mask as a one-hot row over the
 view's masks (one column per mask of each level registered, and a last column of ones), so the
 deterministic backward gives, per picked Gaussian, its weight sums per mask: [U, masks + 1] instead
 of [U, C]; their product with the view's mask features [masks, C] adds the view's part to the
 [N, C] sum. Views stream one at a time and each view's pixels in chunks of ``chunk_rays``: memory
 is the [N, C] sum plus one chunk's selections, never per-view masks of the Gaussians (Dr.Splat's
-visibility masks grow with the frame count). Twin: :mod:`.register_ref`.
+visibility masks grow with the frame count). Twin: tests/app/register_twin.py.
 """
 from __future__ import annotations
 
@@ -23,9 +23,8 @@ from dataclasses import dataclass
 import numpy as np
 from tqdm import tqdm
 
-from ...runtime import channel_layout, device_zeros, to_device
+from ...render import RasterPlan, listed_selection, weighted_sums
 from ...scene import Camera, Gaussians
-from ...stages import RasterPlan, Selection, blend_backward
 from ..scenes.folders import SceneData, unit_rows
 from ..timing import Stopwatch
 from ..training.rays import camera_plan
@@ -93,28 +92,20 @@ def mask_weight_sums(plan: RasterPlan, pixels: np.ndarray, ids: np.ndarray, weig
     -1 padded, with ``weights`` [P,K]; each ray's mask at every level ``pixel_masks`` [P,L], -1 none,
     values below ``n_masks``): (rows [U] int64, the picked Gaussians ascending; sums [U, n_masks + 1]
     float32: column m the sum of the weights from pixels whose mask is m at some level, the last
-    column from all the pixels), by the feature backward of a blend over the picks."""
+    column from all the pixels), by the transpose of a blend over the picks."""
     valid = ids >= 0
     rows = np.unique(ids[valid]).astype(np.int64)
     channels = n_masks + 1
     if not len(rows):
         return rows, np.zeros((0, channels), np.float32)
-    rt = plan.runtime
-    n_rays, k = ids.shape
-    _, _, cstride = channel_layout(channels, rt.gpu_shaped)
-    dimage = np.zeros((n_rays, cstride), np.float32)
+    dimage = np.zeros((len(ids), channels), np.float32)
     for level in pixel_masks.T:
         hit = np.flatnonzero(level >= 0)
         np.add.at(dimage, (hit, level[hit]), 1.0)
     dimage[:, n_masks] = 1.0
-    compact = np.where(valid, np.searchsorted(rows, np.maximum(ids, 0)), -1).astype(np.int32)
-    t_walk, t_sel, t_rem = (device_zeros(rt, n_rays, np.float32) for _ in range(3))   # transmittances: unread
-    sel = Selection(plan=plan, sampler="topk", k=k, pixels=np.ascontiguousarray(pixels, np.int32),
-                    ids=to_device(rt, compact.ravel(), np.int32), weights=to_device(rt, weights.ravel(), np.float32),
-                    offsets=to_device(rt, np.arange(0, n_rays * k, k), np.int32),
-                    count=to_device(rt, valid.sum(1), np.int32), t_walk=t_walk, t_sel=t_sel, t_rem=t_rem,
-                    n_rows=len(rows))
-    return rows, blend_backward(sel, to_device(rt, dimage), channels).get()[:, :channels]
+    compact = np.where(valid, np.searchsorted(rows, np.maximum(ids, 0)), -1)
+    sel = listed_selection(plan, pixels, compact, weights, n_rows=len(rows))
+    return rows, weighted_sums(sel, dimage).numpy()
 
 
 def register(gaussians: Gaussians, views: Iterable[ViewMasks], k: int = DRSPLAT_K, chunk_rays: int = CHUNK_RAYS,

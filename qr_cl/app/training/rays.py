@@ -15,12 +15,11 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ...render import SelectionCache, blend, rasterize_plan
+from ...render import (BackwardIndex, RasterPlan, Selection, SelectionCache, blend, compact_selections,
+                       concat_selections, gather_rays, rasterize_plan, select_rays)
 from ...scene import Camera, Gaussians
-from ...stages import BackwardIndex, RasterPlan, Selection, select
 from ..scenes.folders import Frame, SceneData
 from .loss import cosine_logits, head_cosine_logits
-from .selections import compact_selections, concat_selections, gather_rays
 
 
 class RaySettings(Protocol):
@@ -59,14 +58,14 @@ def view_plan(scene: SceneData, frame_index: int) -> RasterPlan:
 def frame_selection(scene: SceneData, frame_index: int, pixels: np.ndarray, sampler: str, k: int,
                     cache: SelectionCache | None = None) -> Selection:
     """The selection of ``pixels`` [P,2] (x, y) of frame ``frame_index`` of ``scene``: gathered
-    (:func:`qr_cl.app.training.selections.gather_rays`: the same entries a selection of those
+    (:func:`qr_cl.render.gather_rays`: the same entries a selection of those
     pixels computes) from the view's whole-image selection, which ``cache`` keeps under (scene,
     view, sampler, K) once made, while it has room (:meth:`SelectionCache.get_if_room`); selected
     afresh when ``cache`` is None or full."""
     whole = None if cache is None else cache.get_if_room(
-        (str(scene.root), frame_index, sampler, k), lambda: select(view_plan(scene, frame_index), sampler, k))
+        (str(scene.root), frame_index, sampler, k), lambda: select_rays(view_plan(scene, frame_index), sampler, k))
     if whole is None:
-        return select(view_plan(scene, frame_index), sampler, k, pixels)
+        return select_rays(view_plan(scene, frame_index), sampler, k, pixels)
     return gather_rays(whole, pixels[:, 1].astype(np.int64) * whole.plan.width + pixels[:, 0])
 
 
@@ -80,7 +79,7 @@ class StepRays:
     blend, one backward); per view ``targets`` [P] int64 (each ray's mask row) and
     ``mask_features`` [M,C] float32 (the view's unit mask features). ``n_gaussians`` is the
     scene's N. ``backward_index``: what the selection's blend backward reads of it, kept here (made ahead
-    by :func:`qr_cl.stages.prepare_backward` where a trainer does so).
+    by :func:`qr_cl.render.prepare_backward` where a trainer does so).
     """
 
     rows: np.ndarray

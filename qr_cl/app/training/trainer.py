@@ -56,8 +56,7 @@ import torch.distributed as dist
 from tqdm import tqdm
 
 from qr_cl.backbone.conv import conv_threads
-from ...render import SelectionCache
-from ...stages import prepare_backward
+from ...render import SelectionCache, prepare_backward
 from ..process import process_cores
 from ..scenes.folders import SceneDataError, load_scene_folder
 from ..timing import Stopwatch

@@ -1,4 +1,4 @@
-"""Float64 twin of :func:`.register.register`, pixel by pixel, written to be read.
+"""Float64 twin of :func:`qr_cl.app.registration.register.register`, pixel by pixel, written to be read.
 
 Each masked pixel walks its tile's depth-sorted list with the V-Render twin
 (:func:`qr_cl.stages.select_ref.volume_select`: alpha_i and w_i = alpha_i T_i in float32, the
@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ...runtime import TILE
-from ...stages import select_ref
-from .register import ViewMasks
+from qr_cl.app.registration.register import ViewMasks
+from qr_cl.runtime import TILE
+from qr_cl.stages import select_ref
 
 
 def register(metas: list[dict], views: list[ViewMasks], n: int, k: int) -> tuple[np.ndarray, np.ndarray]:

@@ -1,7 +1,9 @@
-"""Selections as a training step uses them: subsets of a view's rays gathered from its whole-image
-selection, several views' rays as one selection, and ids re-indexed into a compact table of the
-Gaussians a step uses (features are computed for those rows only). Each is made by
-:func:`derived` from the selection it comes from. Device arrays come from the runtime's pool."""
+"""Selections made from selections, beside :class:`~qr_cl.stages.select.Selection`: subsets of a
+view's rays gathered from its whole-image selection, several views' rays as one selection, ids
+re-indexed into a compact table of the Gaussians some rays use (a training step computes features
+for those rows only), and a selection of given per-ray lists (registration's top contributors).
+Each is made by :func:`derived` from the selection it comes from, but :func:`listed_selection`.
+Device arrays come from the runtime's pool. Twins: tests/stages/test_selections.py."""
 from __future__ import annotations
 
 import dataclasses
@@ -9,15 +11,15 @@ import dataclasses
 import numpy as np
 import pyopencl.array as cla
 
-from ...runtime import Runtime, device_empty, device_zeros, to_device
-from ...stages import Selection
+from ..runtime import Runtime, device_empty, device_zeros, to_device
+from .binning import RasterPlan
+from .select import Selection, check_pixels
 
 
 def derived(source: Selection, **fields) -> Selection:
     """A new Selection of ``source``'s plan, sampler and K with ``fields`` (keyword-only: any of
     pixels, ids, weights, offsets, count, t_walk, t_sel, t_rem and n_rows, as
-    :class:`qr_cl.stages.Selection` documents them) in place of its own, the others shared: the one
-    way this module makes a Selection. A compact selection (``n_rows`` set) indexes a table of
+    :class:`qr_cl.stages.Selection` documents them) in place of its own, the others shared. A compact selection (``n_rows`` set) indexes a table of
     n_rows rows (:func:`compact_selections`): blend it with features [n_rows, C]; its blend
     backward returns dF [n_rows, C]."""
     fixed = {"plan", "sampler", "k"} & fields.keys()
@@ -169,3 +171,27 @@ def concat_selections(selections: list[Selection]) -> Selection:
                for name in ("count", "t_walk", "t_sel", "t_rem")}
     return derived(first, pixels=np.concatenate([s.pixels for s in parts]), offsets=to_device(rt, offsets, np.int32),
                    **entries, **per_ray)
+
+
+def listed_selection(plan: RasterPlan, pixels: np.ndarray, ids: np.ndarray, weights: np.ndarray,
+                     n_rows: int | None = None) -> Selection:
+    """A Selection of the rays ``pixels`` [P,2] (x, y) of ``plan`` with the given lists: ids [P,L]
+    int (Gaussians, or rows of a compact table of ``n_rows`` rows; -1 in slots past a ray's list,
+    which come last) and weights [P,L] float32, as dense rows of L (sampler "topk", K = L). Its
+    transmittances are zero: it is made for its entries (a blend, or its feature backward), not
+    for its background or alpha."""
+    pixels = check_pixels(pixels, plan.width, plan.height)
+    ids, weights = np.asarray(ids), np.asarray(weights, np.float32)
+    if ids.ndim != 2 or ids.shape != weights.shape or len(ids) != len(pixels):
+        raise ValueError(f"ids and weights must both be [{len(pixels)}, L] (one row per pixel), got "
+                         f"{ids.shape} and {weights.shape}")
+    rt = plan.runtime
+    n_rays, k = ids.shape
+
+    def device(values: np.ndarray, dtype) -> cla.Array:     # at least one slot, as select's arrays
+        return to_device(rt, values.ravel() if values.size else np.zeros(1), dtype)
+    t_walk, t_sel, t_rem = (device_zeros(rt, max(n_rays, 1), np.float32) for _ in range(3))
+    return Selection(plan=plan, sampler="topk", k=k, pixels=pixels, ids=device(np.where(ids >= 0, ids, -1), np.int32),
+                     weights=device(weights, np.float32), offsets=device(np.arange(n_rays) * k, np.int32),
+                     count=device((ids >= 0).sum(1), np.int32), t_walk=t_walk, t_sel=t_sel, t_rem=t_rem,
+                     n_rows=n_rows)

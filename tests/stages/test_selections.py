@@ -7,10 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from qr_cl.app.training.selections import (compact_selections, concat_selections, derived, gather_rays, ray_entries,
-                                           remap_ids)
 from qr_cl.render import blend, rasterize_plan
-from qr_cl.stages import select
+from qr_cl.stages import (compact_selections, concat_selections, derived, gather_rays, listed_selection, ray_entries,
+                          remap_ids, select)
 
 SAMPLERS = [("quantile", 6), ("topk", 3), ("volume", 0)]
 
@@ -122,3 +121,33 @@ def test_concat_selections_stacks_the_rays(plan, sampler, k):
     assert concat_selections([small, small]).n_rows == small.n_rows
     with pytest.raises(ValueError, match="pixel subsets"):
         concat_selections([select(plan, sampler, k)])
+
+
+@pytest.mark.parametrize("n_rays,k", [(40, 5), (7, 1), (0, 3), (6, 0)])
+def test_listed_selection_holds_the_lists_and_blends_them(plan, n_rays, k):
+    """A selection of given lists (-1 padded at the end) has those entries (host()), blends as the
+    numpy twin sum_j w[p,j] f[id[p,j]] and its backward is the transpose sum over the entries of
+    w dImage[p]; no rays and no slots are selections too."""
+    rng = np.random.default_rng(n_rays + k)
+    pixels = random_pixels(plan, n_rays, 3)
+    ids = rng.integers(0, plan.n_gaussians, (n_rays, k))
+    count = rng.integers(0, k + 1, n_rays)
+    ids[np.arange(k)[None] >= count[:, None]] = -1
+    weights = np.where(ids >= 0, rng.random((n_rays, k)), 0).astype(np.float32)
+    sel = listed_selection(plan, pixels, ids, weights)
+    host = sel.host()
+    np.testing.assert_array_equal(host["count"], count)
+    np.testing.assert_array_equal(host["ids"], ids[:, :host["ids"].shape[1]])
+    np.testing.assert_array_equal(host["weights"], weights[:, :host["weights"].shape[1]])
+    features = torch.from_numpy(rng.standard_normal((plan.n_gaussians, 5)).astype(np.float32)).requires_grad_()
+    image = blend(sel, features)
+    f = features.detach().numpy().astype(np.float64)
+    want = np.einsum("pk,pkc->pc", weights, np.where((ids >= 0)[..., None], f[np.maximum(ids, 0)], 0))
+    np.testing.assert_allclose(image.detach().numpy(), want, rtol=1e-5, atol=1e-6)
+    dimage = rng.standard_normal((n_rays, 5))
+    image.backward(torch.from_numpy(dimage.astype(np.float32)))
+    want_grad = np.zeros((plan.n_gaussians, 5))
+    np.add.at(want_grad, ids[ids >= 0], weights[ids >= 0][:, None] * np.repeat(dimage, k, 0).reshape(n_rays, k, 5)[ids >= 0])
+    np.testing.assert_allclose(features.grad.numpy(), want_grad, rtol=1e-5, atol=1e-5)
+    with pytest.raises(ValueError, match="one row per pixel"):
+        listed_selection(plan, pixels, ids[:, :k - 1] if k else ids[:0], weights)
