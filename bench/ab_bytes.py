@@ -4,7 +4,8 @@ Renders a seeded procedural scene through every public path (rasterize with each
 image and a pixel subset, with gradients w.r.t. features and Gaussians; a cached selection
 rendered and back-propagated twice; rasterization with SH, RGB+ED and absgrad; the fused
 V-Render; a training step's gathered, concatenated and compacted selection with its transpose
-made ahead; registration's weight sums of a view's top contributors) under each install and compares every array's bytes (exit status 1 when any differs)::
+made ahead; registration's weight sums of a view's top contributors) under each install and compares every array's bytes (exit status 1 when any differs), and the kernels each path
+launched (name, work-items, build defines, in order): the same launches do the same work::
 
     python bench/ab_bytes.py --base PYTHON_OR_CHECKOUT
 """
@@ -21,8 +22,20 @@ import numpy as np
 from ab import add_base_option, installs
 
 
+def recorded_launches() -> list[str]:
+    """Records every kernel launch from now on ("name size defines"), in the returned list."""
+    from qr_cl.runtime import Runtime
+    launched, launch = [], Runtime.launch
+
+    def record(self, name, global_size, defines=None, local_size=None, **args):
+        launched.append(f"{name} {global_size} {sorted((defines or {}).items())}")
+        return launch(self, name, global_size, defines, local_size, **args)
+    Runtime.launch = record
+    return launched
+
+
 def outputs() -> dict[str, np.ndarray]:
-    """Every output and gradient of the renders above, by name."""
+    """Every output and gradient of the renders above, by name, and the kernels launched."""
     import torch
 
     import qr_cl
@@ -38,6 +51,7 @@ def outputs() -> dict[str, np.ndarray]:
         from qr_cl.app.training.selections import compact_selections, concat_selections, gather_rays
         from qr_cl.stages import prepare_backward, select
     out = {}
+    launched = recorded_launches()
     g = procedural_scene(3000)
     W, H = 96, 64
     cam = orbit_cameras(g.means, 8, W, H)[1]
@@ -92,6 +106,7 @@ def outputs() -> dict[str, np.ndarray]:
     ids, weights = top_contributors(plan, pixels, 5)
     masks = rng.integers(-1, 6, (len(pixels), 3))
     out["register-rows"], out["register-sums"] = mask_weight_sums(plan, pixels, ids, weights, masks, 6)
+    out["launches"] = np.array(launched)
     return out
 
 
@@ -120,7 +135,8 @@ def main() -> None:
             with np.load(out) as f:
                 arrays[install.label] = {k: f[k] for k in f.files}
     bad = differing(arrays["base"], arrays["this"])
-    print(f"{len(arrays['base'])} and {len(arrays['this'])} arrays; differing: {bad or 'none'}")
+    print(f"{len(arrays['base'])} and {len(arrays['this'])} arrays ({len(arrays['this']['launches'])} kernel "
+          f"launches); differing: {bad or 'none'}")
     sys.exit(1 if bad else 0)
 
 
