@@ -4,8 +4,9 @@ Renders a seeded procedural scene through every public path (rasterize with each
 image and a pixel subset, with gradients w.r.t. features and Gaussians; a cached selection
 rendered and back-propagated twice; rasterization with SH, RGB+ED and absgrad; the fused
 V-Render; a training step's gathered, concatenated and compacted selection with its transpose
-made ahead; registration's weight sums of a view's top contributors) under each install and compares every array's bytes (exit status 1 when any differs), and the kernels each path
-launched (name, work-items, build defines, in order): the same launches do the same work::
+made ahead; registration's weight sums of a view's top contributors) under each install and
+compares every array's bytes and the kernels launched (name, work-items, build defines, in
+order: the same launches do the same work); exit status 1 when any differs::
 
     python bench/ab_bytes.py --base PYTHON_OR_CHECKOUT
 """
