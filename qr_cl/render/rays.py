@@ -124,11 +124,11 @@ def select_and_blend_rays(plan: RasterPlan, sampler: str, k: int, pixels: np.nda
 
 def weighted_sums(selection: Selection, values: torch.Tensor | np.ndarray, dtype: torch.dtype = torch.float32,
                   backward_index: BackwardIndex | None = None) -> torch.Tensor:
-    """[N,C] in ``dtype`` (float32 or float16): per Gaussian g of the selection's table, the sum
-    over its entries (p, j) of w[p,j] values[p] (``values`` [P,C], one row per ray): the blend's
-    transpose, i.e. the gradient of a loss w.r.t. the features given ``values`` = dL/dimage.
-    Deterministic (:func:`qr_cl.stages.blend_backward`), summed in float32 (a float16 result is
-    rounded on the device), a row part at a time where the rows exceed a device buffer.
+    """[N,C] in ``dtype`` (the feature table's): per Gaussian g of the selection's table, the
+    sum over its entries (p, j) of w[p,j] values[p] (``values`` [P,C], one row per ray): the
+    blend's transpose, i.e. the gradient of a loss w.r.t. the features given ``values`` =
+    dL/dimage. Deterministic (:func:`qr_cl.stages.blend_backward`), summed in float32 (a float16
+    result is rounded on the device), a row part at a time where the rows exceed a device buffer.
     ``backward_index``: the selection's (:func:`prepare_backward`), kept by the caller (None:
     made for this call)."""
     rt = selection.plan.runtime
