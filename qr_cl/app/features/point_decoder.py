@@ -47,8 +47,8 @@ MULTIMASK = (1, 2, 3)
 READ_TOKENS = (0,) + tuple(1 + i for i in MULTIMASK)
 #: Low-resolution mask logits per image token and axis (two 2x upscaling convolutions).
 UPSCALE = 4
-#: Image tokens upscaled at a time (a tile's temporaries stay in the CPU's caches).
-TOKEN_TILE = 256
+#: Image tokens times prompts upscaled at a time (a tile's temporaries stay in the CPU's caches).
+TOKEN_TILE = 4096
 
 
 def _split_heads(x: torch.Tensor, heads: int) -> torch.Tensor:
@@ -386,7 +386,7 @@ class PointDecoder:
             out = keys.new_empty(b, len(MULTIMASK), UPSCALE * rows, UPSCALE * cols)
             tiles = out.view(b, len(MULTIMASK), rows, 2, 2, cols, 2, 2)
             tiles = tiles.permute(0, 2, 5, 3, 6, 4, 7, 1)                              # i, j, a, c, a2, c2
-            step = max(1, TOKEN_TILE // cols)                                         # token rows a tile
+            step = max(1, TOKEN_TILE // (b * cols))                                   # token rows a tile
             for i in range(0, rows, step):                                            # tiles stay in cache
                 part = slice(i * cols, min(i + step, rows) * cols)
                 up = torch.addcmul(self.conv_b1, keys[:, part], rstd1[:, part]).baddbmm_(coeffs[:, part], values)
