@@ -20,7 +20,8 @@ band, the windows that straddle -offset, 0 or +offset within the margin, needs i
 :func:`stable_masks` computes them with :func:`upsample`'s products summed in its order (the same
 float32 values), counts the other pixels per window, and so gives the masks (logits above 0) and
 scores of the dense path bit for bit. Masks whose logits are noisy (many windows straddle 0,
-:data:`DENSE_BAND`) or not all finite (inf times a zero weight is nan) are upsampled densely.
+:data:`DENSE_BAND`) or not all finite (inf times a zero weight is nan) are upsampled densely, a
+few at a time (:data:`DENSE_CHUNK`).
 
 The rounding margin. The weights are the dense maps' float64 entries rounded to float32:
 non-negative, each row summing to 1 within 3u (u = 2^-24), so a pixel's weights w (both axes) sum
@@ -45,6 +46,9 @@ ROUNDING_MARGIN = 1e-3
 #: upsampled densely: about where the band's logits, each costing several dense ones, cost as much
 #: as the dense upsampling (bench/mask_band.py).
 DENSE_BAND = 0.1
+#: Masks upsampled densely at a time (their logits, 1.2 MB each at 640x480, stay in cache
+#: from the upsampling through the score and the threshold).
+DENSE_CHUNK = 4
 
 
 @dataclass(frozen=True)
@@ -240,6 +244,20 @@ def _painted(above: torch.Tensor, band: _Band, kept: torch.Tensor, rows: Taps, c
     return masks
 
 
+def _dense_scores_and_masks(low: torch.Tensor, rows: Taps, cols: Taps, offset: float,
+                            stability: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """(scores [M], masks [n, H, W] bool of those scoring at least ``stability``) of ``low``
+    [M, h, w] upsampled densely, :data:`DENSE_CHUNK` masks at a time."""
+    scores, masks = [], []
+    for start in range(0, len(low), DENSE_CHUNK):
+        logits = upsample(low[start:start + DENSE_CHUNK], rows, cols)
+        scores.append(stability_scores(logits, offset))
+        masks.append(logits[scores[-1] >= stability] > 0)
+    if not scores:
+        return low.new_empty(0), torch.empty(0, len(rows.first), len(cols.first), dtype=torch.bool, device=low.device)
+    return torch.cat(scores), torch.cat(masks)
+
+
 def stable_masks(low: torch.Tensor, rows: Taps, cols: Taps, offset: float,
                  stability: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """(index [n] int64, masks [n, H, W] bool, scores [n] float32) of the masks of ``low`` [M, h, w]
@@ -256,8 +274,8 @@ def stable_masks(low: torch.Tensor, rows: Taps, cols: Taps, offset: float,
     finite = (top.flatten(1).amax(1) < math.inf) & (bottom.flatten(1).amin(1) > -math.inf)
     dense = (~finite | (_count(zero, rows, cols) > DENSE_BAND * size))[index]
     scores = torch.empty(len(index), device=low.device)
-    logits = upsample(low[index[dense]], rows, cols)
-    scores[dense] = stability_scores(logits, offset)
+    dense_scores, dense_masks = _dense_scores_and_masks(low[index[dense]], rows, cols, offset, stability)
+    scores[dense] = dense_scores
     sparse = index[~dense]
     bottom = bottom[sparse]
     band = zero[sparse] | _straddling(top[sparse], bottom, (-offset, offset), margin)
@@ -268,6 +286,6 @@ def stable_masks(low: torch.Tensor, rows: Taps, cols: Taps, offset: float,
     keep = scores >= stability
     masks = torch.empty(int(keep.sum()), len(rows.first), len(cols.first), dtype=torch.bool, device=low.device)
     rank = keep.cumsum(0) - 1
-    masks[rank[keep & dense]] = logits[keep[dense]] > 0
+    masks[rank[keep & dense]] = dense_masks
     masks[rank[keep & ~dense]] = _painted(bottom > margin, exact, keep[~dense], rows, cols)
     return index[keep], masks, scores[keep]

@@ -25,8 +25,9 @@ cross-attentions of 8 heads of width d = 16:
   ``rstd2 * (rstd1 * ((X0 W'' + a1^T V1 W'') - mean1 c1) + b1 W' + a2^T V2 W' - mean2 c2) + b2 W + bias``
   (``W' = diag(g2) W``, ``W'' = diag(g1) W'``, ``c`` their column sums): ``X0 W''`` once per
   image, then one [N, 2*(8*7+1)] x [2*(8*7+1), 256] product per prompt instead of [N, C] x [C, 256].
-- The second convolution is per pixel too ([64] -> [2*2*32] channels last); each tile's masks
-  are copied from that sub-pixel order into the output's. Only the three multimask outputs are decoded
+- The second convolution is per pixel too ([64] -> [2*2*32] channels last); the hypernetwork
+  reads its 32 channels per output pixel as a [3, 32] x [32, pixels] product per prompt, and each
+  tile's masks are copied from that sub-pixel order into the output's. Only the three multimask outputs are decoded
   (the single-mask output is never used; the last attention runs for the four output tokens that
   are read), only for the token rows and columns the caller's crop reads, and only for the
   prompts asked for.
@@ -47,8 +48,8 @@ MULTIMASK = (1, 2, 3)
 READ_TOKENS = (0,) + tuple(1 + i for i in MULTIMASK)
 #: Low-resolution mask logits per image token and axis (two 2x upscaling convolutions).
 UPSCALE = 4
-#: Image tokens upscaled at a time (a tile's temporaries stay in the CPU's caches).
-TOKEN_TILE = 256
+#: Image tokens times prompts upscaled at a time (a tile's temporaries stay in the CPU's caches).
+TOKEN_TILE = 4096
 
 
 def _split_heads(x: torch.Tensor, heads: int) -> torch.Tensor:
@@ -73,6 +74,11 @@ def _add_heads(out: torch.Tensor, scores: torch.Tensor, scale: torch.Tensor | No
     else:
         view.addcmul_(heads, scale[:, :, None])
     return out
+
+
+def _gelu_(x: torch.Tensor) -> torch.Tensor:
+    """``x`` through the exact (erf) GELU, in place."""
+    return torch.ops.aten.gelu_(x)
 
 
 def _dot(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
@@ -371,12 +377,7 @@ class PointDecoder:
         first, second = tokens.first, tokens.second
         with torch.no_grad():
             mlps = dec.output_hypernetworks_mlps
-            hyper = torch.stack([mlps[i](tokens.hs[:, 1 + k]) for k, i in enumerate(MULTIMASK)], 2)  # [B, 32, 3]
-            # block-diagonal [B, 4*32, 4*3]: the masks of the second convolution's 4 sub-pixels in
-            # one product with 12 columns (3 columns alone make a slow product)
-            sub = hyper.new_zeros(b, 4, hyper.shape[1], 4, len(MULTIMASK))
-            sub.diagonal(dim1=1, dim2=3).copy_(hyper[..., None].expand(-1, -1, -1, 4))
-            sub = sub.view(b, 4 * hyper.shape[1], -1)
+            hyper = torch.stack([mlps[i](tokens.hs[:, 1 + k]) for k, i in enumerate(MULTIMASK)], 1)  # [B, 3, 32]
             rstd1, rstd2 = window(first.rstd), window(second.rstd)
             coeffs = torch.cat([window(first.weights.transpose(1, 2)) * rstd1, -window(first.mean) * rstd1,
                                 window(second.weights.transpose(1, 2)), -window(second.mean)], -1)   # [B, n, 114]
@@ -384,15 +385,20 @@ class PointDecoder:
                                 second.values @ self.conv_w2, self.conv_w2.sum(0).expand(b, 1, -1)], 1)
             keys = window(self.keys_conv)
             out = keys.new_empty(b, len(MULTIMASK), UPSCALE * rows, UPSCALE * cols)
-            tiles = out.view(b, len(MULTIMASK), rows, 2, 2, cols, 2, 2)
-            tiles = tiles.permute(0, 2, 5, 3, 6, 4, 7, 1)                              # i, j, a, c, a2, c2
-            step = max(1, TOKEN_TILE // cols)                                         # token rows a tile
+            tiles = out.view(b, len(MULTIMASK), rows, 2, 2, cols, 2, 2)                # m, i, a, a2, j, c, c2
+            step = max(1, TOKEN_TILE // (b * cols))                                   # token rows a tile
+            width1, width2 = values.shape[-1], self.up2_w.shape[-1]                   # 4*64, 4*32 channels
+            buffer1 = keys.new_empty(b * step * cols * width1)                        # reused by every tile:
+            buffer2 = keys.new_empty(b * step * cols * 4 * width2)                    # no fresh pages
             for i in range(0, rows, step):                                            # tiles stay in cache
                 part = slice(i * cols, min(i + step, rows) * cols)
-                up = torch.addcmul(self.conv_b1, keys[:, part], rstd1[:, part]).baddbmm_(coeffs[:, part], values)
-                up = torch.addcmul(self.conv_b2, up, rstd2[:, part]).unflatten(-1, (4, -1))   # [B, tile, 4, 64]
-                up = F.gelu(F.layer_norm(up, up.shape[-1:], norm.weight, norm.bias, norm.eps))
-                up = F.gelu((up @ self.up2_w).add_(self.up2_b))         # [B, tile, 4, 4*32]
-                low = up.flatten(1, 2) @ sub                                            # [B, tile*4, 4*3]
-                tiles[:, i:i + step].copy_(low.view(b, -1, cols, 2, 2, 2, 2, len(MULTIMASK)))
+                n = part.stop - part.start
+                up = buffer1[:b * n * width1].view(b, n, -1)
+                up = torch.addcmul(self.conv_b1, keys[:, part], rstd1[:, part], out=up)
+                up = up.baddbmm_(coeffs[:, part], values).mul_(rstd2[:, part]).add_(self.conv_b2)   # [B, tile, 4*64]
+                up = _gelu_(F.layer_norm(up.view(b, n * 4, -1), (width1 // 4,), norm.weight, norm.bias, norm.eps))
+                up = torch.matmul(up, self.up2_w, out=buffer2[:b * n * 4 * width2].view(b, n * 4, -1))
+                up = _gelu_(up.add_(self.up2_b)).view(b, n * 16, -1)                    # [B, tile*4*4, 32]
+                low = (hyper @ up.transpose(1, 2)).view(b, len(MULTIMASK), -1, cols, 2, 2, 2, 2)  # m,i,j,a,c,a2,c2
+                tiles[:, :, i:i + step].copy_(low.permute(0, 1, 2, 4, 6, 3, 5, 7))
         return out
