@@ -32,13 +32,10 @@ _EIGHT = np.ones((3, 3), bool)
 
 @dataclass(frozen=True)
 class MaskSettings:
-    """The generator's settings; the defaults are LangSplat's (its ``preprocess.py``) but for
-    ``points_per_batch``, the prompts decoded at a time, which changes no mask: LangSplat's 64 make
-    the decoder's per-prompt [56, 4096] maps and the filters' logits outgrow the CPU's caches
-    (about twice as slow per prompt as 16)."""
+    """The generator's settings; the defaults are LangSplat's (its ``preprocess.py``)."""
 
     points_per_side: int = 32
-    points_per_batch: int = 16
+    points_per_batch: int = 64
     pred_iou: float = 0.7
     stability: float = 0.85
     stability_offset: float = 1.0
