@@ -139,13 +139,18 @@ def upward_imports(mods: dict[str, Path]) -> list[tuple[str, int, str]]:
     return bad
 
 
+def listing(found: list[tuple[str, int, str]]) -> str:
+    """(importer, line, module) rows, one per line, for an assertion's message."""
+    return "\n  " + "\n  ".join(f"{m}:{line} {t}" for m, line, t in found)
+
+
 def test_every_module_is_in_a_layer():
     assert [m for m in modules() if layer(m) is None] == ["qr_cl"]
 
 
 def test_no_layer_imports_a_layer_above_it():
     bad = upward_imports(modules())
-    assert not bad, "imports of a higher layer:\n  " + "\n  ".join(f"{m}:{line} {t}" for m, line, t in bad)
+    assert not bad, "imports of a higher layer:" + listing(bad)
 
 
 def test_the_arrow_rule_catches_an_upward_import(tmp_path):
@@ -157,7 +162,7 @@ def test_the_arrow_rule_catches_an_upward_import(tmp_path):
 
 def test_the_app_renders_through_render_only():
     bad = stage_imports(modules())
-    assert not bad, "app modules importing the stages:\n  " + "\n  ".join(f"{m}:{line} {t}" for m, line, t in bad)
+    assert not bad, "app modules importing the stages:" + listing(bad)
 
 
 def test_the_stage_rule_catches_an_app_module_taking_a_stage(tmp_path):
