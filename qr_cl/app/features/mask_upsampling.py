@@ -85,11 +85,13 @@ class Taps:
 
 def _resize(x: torch.Tensor, taps: Taps) -> torch.Tensor:
     """[M, out, k] of ``x`` [M, n, k] resized along its middle axis by ``taps`` (whole rows of k
-    gathered at a time)."""
-    out = None
-    for k in range(taps.span):
-        term = x.index_select(1, (taps.first + k).clamp(max=x.shape[1] - 1)) * taps.weights[:, k, None]
-        out = term if out is None else out.add_(term)
+    gathered at a time, each tap's products into one reused buffer, added in the taps' order)."""
+    last = x.shape[1] - 1
+    out = torch.index_select(x, 1, taps.first.clamp(max=last)).mul_(taps.weights[:, 0, None])
+    term = torch.empty_like(out)
+    for k in range(1, taps.span):
+        torch.index_select(x, 1, (taps.first + k).clamp(max=last), out=term)
+        out.add_(term.mul_(taps.weights[:, k, None]))
     return out
 
 
@@ -97,7 +99,7 @@ def upsample(low: torch.Tensor, rows: Taps, cols: Taps) -> torch.Tensor:
     """[..., H, W] logits at the image's size from SAM's ``low`` [..., h, w] (h, w at least the
     taps' reads): the columns, then the rows."""
     flat = low.flatten(0, -3) if low.dim() > 2 else low[None]
-    wide = _resize(flat.transpose(1, 2), cols).transpose(1, 2).contiguous()          # [M, h, W]
+    wide = _resize(flat.transpose(1, 2).contiguous(), cols).transpose(1, 2).contiguous()   # [M, h, W]
     return _resize(wide, rows).view(*low.shape[:-2], len(rows.first), len(cols.first))
 
 

@@ -7,7 +7,8 @@ With ``X0`` the [N, C] map of image tokens (N = 4096, C = 256), 7 tokens per pro
 cross-attentions of 8 heads of width d = 16:
 
 - Block one: its tokens -> image attention reads the image map before any prompt changed it, so
-  its keys, values and image queries are projected once per image.
+  its keys, values and image queries are projected once per image, and all prompts' queries
+  attend to it as one sequence per head.
 - After block one's image -> tokens update the map is ``LN1(X0 + a1^T V1)``: a1 [8*7, N] the
   attention weights (each head's softmax over its 7 tokens), V1 [8*7, C] the token values with the
   output projection folded in. Written as ``rstd1 * (Y + a1^T R1) + b1`` (Y = (X0 - mean) * g1,
@@ -24,10 +25,12 @@ cross-attentions of 8 heads of width d = 16:
   per token, then a gain and bias per channel, so the convolution of the final map is
   ``rstd2 * (rstd1 * ((X0 W'' + a1^T V1 W'') - mean1 c1) + b1 W' + a2^T V2 W' - mean2 c2) + b2 W + bias``
   (``W' = diag(g2) W``, ``W'' = diag(g1) W'``, ``c`` their column sums): ``X0 W''`` once per
-  image, then one [N, 2*(8*7+1)] x [2*(8*7+1), 256] product per prompt instead of [N, C] x [C, 256].
+  image, then ``rstd1 rstd2 (X0 W'')`` plus ``b2 W + bias`` and one [N, 2*(8*7+1)+1] x
+  [2*(8*7+1)+1, 256] product per prompt (the rows ``V1 W''``, ``c1``, ``V2 W'``, ``c2``, ``b1 W'``
+  with their coefficients times ``rstd2``) instead of [N, C] x [C, 256].
 - The second convolution is per pixel too ([64] -> [2*2*32] channels last); the hypernetwork
   reads its 32 channels per output pixel as a [3, 32] x [32, pixels] product per prompt, and each
-  tile's masks are copied from that sub-pixel order into the output's. Only the three multimask outputs are decoded
+  tile's masks are gathered from that sub-pixel order into the output's (:func:`_grid_order`). Only the three multimask outputs are decoded
   (the single-mask output is never used; the last attention runs for the four output tokens that
   are read), only for the token rows and columns the caller's crop reads, and only for the
   prompts asked for.
@@ -74,6 +77,15 @@ def _add_heads(out: torch.Tensor, scores: torch.Tensor, scale: torch.Tensor | No
     else:
         view.addcmul_(heads, scale[:, :, None])
     return out
+
+
+def _grid_order(rows: int, cols: int, device: torch.device) -> torch.Tensor:
+    """[rows * cols * 16] int64: for each logit of ``rows`` x ``cols`` image tokens in the mask
+    grid's order (token row i, first and second convolution's sub-pixel rows a, a2, token column
+    j, their sub-pixel columns c, c2), its place in the upscaling's order (i, j, a, c, a2, c2).
+    A gather by it is one pass; a copy through the 8-dimensional permuted view was ten times slower."""
+    upscaled = torch.arange(rows * cols * UPSCALE ** 2, device=device).view(rows, cols, 2, 2, 2, 2)
+    return upscaled.permute(0, 2, 4, 1, 3, 5).flatten()
 
 
 def _gelu_(x: torch.Tensor) -> torch.Tensor:
@@ -330,9 +342,11 @@ class PointDecoder:
         with torch.no_grad():
             queries = first.norm1(first.self_attn(tokens, tokens, tokens))
             t2i = first.cross_attn_token_to_image
-            q = _split_heads(t2i.q_proj(queries + tokens), t2i.heads)
-            attended = F.scaled_dot_product_attention(q, self.first_k.expand(b, -1, -1, -1),
-                                                      self.first_v.expand(b, -1, -1, -1))
+            q = _split_heads(t2i.q_proj(queries + tokens), t2i.heads)                # [B, h, T, d]
+            heads, t, d = q.shape[1:]                                                 # every prompt's queries
+            attended = F.scaled_dot_product_attention(                                # one sequence per head
+                q.transpose(0, 1).reshape(1, heads, b * t, d), self.first_k, self.first_v)
+            attended = attended.view(heads, b, t, d).transpose(0, 1)
             queries = first.norm2(queries + t2i.out_proj(attended.transpose(1, 2).flatten(2)))
             queries = first.norm3(queries + first.mlp(queries))
             i2t = first.cross_attn_image_to_token
@@ -378,27 +392,33 @@ class PointDecoder:
         with torch.no_grad():
             mlps = dec.output_hypernetworks_mlps
             hyper = torch.stack([mlps[i](tokens.hs[:, 1 + k]) for k, i in enumerate(MULTIMASK)], 1)  # [B, 3, 32]
-            rstd1, rstd2 = window(first.rstd), window(second.rstd)
-            coeffs = torch.cat([window(first.weights.transpose(1, 2)) * rstd1, -window(first.mean) * rstd1,
-                                window(second.weights.transpose(1, 2)), -window(second.mean)], -1)   # [B, n, 114]
+            rstd2 = window(second.rstd)
+            rstd12 = window(first.rstd) * rstd2
+            coeffs = torch.cat([window(first.weights.transpose(1, 2)) * rstd12, -window(first.mean) * rstd12,
+                                window(second.weights.transpose(1, 2)) * rstd2, -window(second.mean) * rstd2,
+                                rstd2], -1)                                                # [B, n, 115]
             values = torch.cat([first.values @ self.conv_w1, self.conv_w1.sum(0).expand(b, 1, -1),
-                                second.values @ self.conv_w2, self.conv_w2.sum(0).expand(b, 1, -1)], 1)
+                                second.values @ self.conv_w2, self.conv_w2.sum(0).expand(b, 1, -1),
+                                self.conv_b1.expand(b, 1, -1)], 1)
             keys = window(self.keys_conv)
             out = keys.new_empty(b, len(MULTIMASK), UPSCALE * rows, UPSCALE * cols)
-            tiles = out.view(b, len(MULTIMASK), rows, 2, 2, cols, 2, 2)                # m, i, a, a2, j, c, c2
+            logits = out.view(b * len(MULTIMASK), -1)                                # each mask's, row by row
             step = max(1, TOKEN_TILE // (b * cols))                                   # token rows a tile
             width1, width2 = values.shape[-1], self.up2_w.shape[-1]                   # 4*64, 4*32 channels
             buffer1 = keys.new_empty(b * step * cols * width1)                        # reused by every tile:
             buffer2 = keys.new_empty(b * step * cols * 4 * width2)                    # no fresh pages
+            buffer3 = keys.new_empty(b * len(MULTIMASK) * step * cols * UPSCALE ** 2)
             for i in range(0, rows, step):                                            # tiles stay in cache
                 part = slice(i * cols, min(i + step, rows) * cols)
                 n = part.stop - part.start
                 up = buffer1[:b * n * width1].view(b, n, -1)
-                up = torch.addcmul(self.conv_b1, keys[:, part], rstd1[:, part], out=up)
-                up = up.baddbmm_(coeffs[:, part], values).mul_(rstd2[:, part]).add_(self.conv_b2)   # [B, tile, 4*64]
+                up = torch.addcmul(self.conv_b2, keys[:, part], rstd12[:, part], out=up)
+                up = up.baddbmm_(coeffs[:, part], values)                               # [B, tile, 4*64]
                 up = _gelu_(F.layer_norm(up.view(b, n * 4, -1), (width1 // 4,), norm.weight, norm.bias, norm.eps))
                 up = torch.matmul(up, self.up2_w, out=buffer2[:b * n * 4 * width2].view(b, n * 4, -1))
                 up = _gelu_(up.add_(self.up2_b)).view(b, n * 16, -1)                    # [B, tile*4*4, 32]
-                low = (hyper @ up.transpose(1, 2)).view(b, len(MULTIMASK), -1, cols, 2, 2, 2, 2)  # m,i,j,a,c,a2,c2
-                tiles[:, :, i:i + step].copy_(low.permute(0, 1, 2, 4, 6, 3, 5, 7))
+                low = (hyper @ up.transpose(1, 2)).view(b * len(MULTIMASK), -1)       # [B*3, tile*16]
+                tile = torch.index_select(low, 1, _grid_order(n // cols, cols, low.device),
+                                          out=buffer3[:low.numel()].view(low.shape))
+                logits[:, i * cols * UPSCALE ** 2:part.stop * UPSCALE ** 2].copy_(tile)
         return out
