@@ -176,13 +176,18 @@ class MapUpdate:
     heads: torch.Tensor | None = None
 
 
+def _scaled_heads(linear: torch.nn.Linear, x: torch.Tensor, heads: int) -> torch.Tensor:
+    """[B, h, T, d]: ``linear`` of ``x`` [B, T, C] per head, times attention's 1 / sqrt(d): logits
+    against it come scaled, with no pass over them."""
+    out = _split_heads(linear(x), heads)
+    return out.mul_(1 / math.sqrt(out.shape[-1]))
+
+
 def _image_update(attn: TokenAttention, logits: torch.Tensor, tokens: torch.Tensor) -> MapUpdate:
     """The update by ``attn`` from the image to the tokens, given the image queries' logits
-    ``logits`` [B, h, T, N] (before scaling) and the tokens ``tokens`` [B, T, C] the values come
-    from."""
+    ``logits`` [B, h, T, N] (scaled) and the tokens ``tokens`` [B, T, C] the values come from."""
     heads = attn.heads
-    scale = 1 / math.sqrt(attn.q_proj.out_features // heads)
-    weights = torch.softmax(logits * scale, 2).flatten(1, 2)                         # [B, h*T, N]
+    weights = torch.softmax(logits, 2).flatten(1, 2)                                 # [B, h*T, N]
     out = attn.out_proj.weight.T.unflatten(0, (heads, -1))                           # [h, d, C]
     per_head = _split_heads(attn.v_proj(tokens), heads)
     values = per_head @ out + attn.out_proj.bias / heads
@@ -214,8 +219,8 @@ def _attend(attn: TokenAttention, queries: torch.Tensor, image: LowRankMap, keys
             values: Projected) -> torch.Tensor:
     """[B, T, C]: ``attn`` from ``queries`` [B, T, C] to the maps ``image``, whose keys (with
     positions) and values project as ``keys`` and ``values``."""
-    q = _split_heads(attn.q_proj(queries), attn.heads)                               # [B, h, T, d]
-    weights = torch.softmax(_map_logits(image, q, keys).mul_(1 / math.sqrt(q.shape[-1])), -1)
+    q = _scaled_heads(attn.q_proj, queries, attn.heads)                              # [B, h, T, d]
+    weights = torch.softmax(_map_logits(image, q, keys), -1)
     return attn.out_proj(image.pooled(weights, values).add_(values.const).transpose(1, 2).flatten(2))
 
 
@@ -350,7 +355,7 @@ class PointDecoder:
             queries = first.norm2(queries + t2i.out_proj(attended.transpose(1, 2).flatten(2)))
             queries = first.norm3(queries + first.mlp(queries))
             i2t = first.cross_attn_image_to_token
-            k = _split_heads(i2t.k_proj(queries + tokens), i2t.heads)                # [B, h, T, d]
+            k = _scaled_heads(i2t.k_proj, queries + tokens, i2t.heads)               # [B, h, T, d]
             first_update = _image_update(i2t, _head_scores(k, self.first_q).transpose(0, 1), queries)
             x1 = self._first_norm(first_update, first.norm4)
 
@@ -360,7 +365,7 @@ class PointDecoder:
                                                      self.second_k, self.second_v))
             queries = second.norm3(queries + second.mlp(queries))
             i2t = second.cross_attn_image_to_token
-            k = _split_heads(i2t.k_proj(queries + tokens), i2t.heads)                # [B, h, T, d]
+            k = _scaled_heads(i2t.k_proj, queries + tokens, i2t.heads)               # [B, h, T, d]
             logits = _map_logits(x1, k, self.second_q).unflatten(1, (i2t.heads, -1))
             second_update = _image_update(i2t, logits, queries)
             x2 = self._second_norm(x1, first_update, second_update, second.norm4)
