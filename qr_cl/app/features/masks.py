@@ -98,16 +98,27 @@ def crop_boxes(height: int, width: int, layers: int, overlap: float) -> list[tup
     return boxes
 
 
+def _paste(pieces: list[torch.Tensor], piece: torch.Tensor, row: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
+    """``out`` [n, h, w] (a window of the masks being made) with mask i row ``row[i]`` of
+    ``pieces[piece[i]]`` (each [m, h, w] bool): only the masks asked for are copied."""
+    for p, masks in enumerate(pieces):
+        here = (piece == p).nonzero()[:, 0]
+        if len(here):
+            out[here] = masks[row[here]]
+    return out
+
+
 def _crop_masks(sam: Sam, image: np.ndarray, crop: tuple[int, int, int, int], settings: MaskSettings,
                 full: tuple[int, int]) -> list[Masks]:
     """Per level, the masks of one crop that pass the per-mask filters and the crop's box NMS,
-    placed in the whole image."""
+    placed in the whole image. Each batch's masks stay where the filters made them until NMS has
+    picked the ones to place: the rest are never copied."""
     x0, y0, x1, y1 = crop
     view = sam.embed(np.ascontiguousarray(image[y0:y1, x0:x1]))
     ch, cw = y1 - y0, x1 - x0
     points = point_grid(settings.points_per_side) * np.array([cw, ch])
     offset = torch.tensor([x0, y0, x0, y0], dtype=torch.float32, device=sam.device)
-    kept: list[list[Masks]] = [[] for _ in LEVELS]
+    pieces, rows, found = [], [], []
     for start in range(0, len(points), settings.points_per_batch):
         tokens, iou = view.decode(points[start:start + settings.points_per_batch])
         passing = iou > settings.pred_iou                                  # the IoU filter before any upsampling
@@ -119,18 +130,21 @@ def _crop_masks(sam: Sam, image: np.ndarray, crop: tuple[int, int, int, int], se
         keep, masks, stab = stable_masks(low, view.rows, view.cols, settings.stability_offset, settings.stability)
         iou, output = iou[keep], output[keep]
         boxes = mask_boxes(masks) + offset
-        keep = ~near_crop_edge(boxes, crop, (0, 0, full[1], full[0]))
-        found = Masks(masks[keep], boxes[keep], iou[keep], stab[keep],
-                      torch.full((int(keep.sum()),), float(cw * ch), device=iou.device))
-        for level, sel in enumerate([None, 0, 1, 2]):
-            kept[level].append(found if sel is None else found.take(output[keep] == sel))
+        keep = (~near_crop_edge(boxes, crop, (0, 0, full[1], full[0]))).nonzero()[:, 0]
+        pieces.append(masks)
+        rows.append(keep)
+        found.append((boxes[keep], iou[keep], stab[keep], output[keep]))
+    piece = torch.cat([torch.full_like(r, p) for p, r in enumerate(rows)])
+    row = torch.cat(rows)
+    boxes, iou, stab, output = (torch.cat(f) for f in zip(*found))
     result = []
-    for parts in kept:
-        level = Masks.cat(parts, (ch, cw), sam.device)
-        level = level.take(nms(level.boxes, level.iou, settings.box_nms))
-        placed = torch.zeros(len(level), *full, dtype=torch.bool, device=sam.device)
-        placed[:, y0:y1, x0:x1] = level.masks
-        result.append(replace(level, masks=placed))
+    for sel in (None, 0, 1, 2):
+        index = torch.arange(len(boxes), device=boxes.device) if sel is None else (output == sel).nonzero()[:, 0]
+        index = index[nms(boxes[index], iou[index], settings.box_nms)]
+        placed = torch.zeros(len(index), *full, dtype=torch.bool, device=sam.device)
+        _paste(pieces, piece[index], row[index], placed[:, y0:y1, x0:x1])
+        result.append(Masks(placed, boxes[index], iou[index], stab[index],
+                            torch.full((len(index),), float(cw * ch), device=boxes.device)))
     return result
 
 
