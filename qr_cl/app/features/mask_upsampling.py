@@ -247,17 +247,17 @@ def _painted(above: torch.Tensor, band: _Band, kept: torch.Tensor, rows: Taps, c
 
 
 def _dense_scores_and_masks(low: torch.Tensor, rows: Taps, cols: Taps, offset: float,
-                            stability: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """(scores [M], masks [n, H, W] bool of those scoring at least ``stability``) of ``low``
-    [M, h, w] upsampled densely, :data:`DENSE_CHUNK` masks at a time."""
+                            stability: float) -> tuple[torch.Tensor, list[torch.Tensor]]:
+    """(scores [M], masks of those scoring at least ``stability``: [n_i, H, W] bool per chunk) of
+    ``low`` [M, h, w] upsampled densely, :data:`DENSE_CHUNK` masks at a time."""
     scores, masks = [], []
     for start in range(0, len(low), DENSE_CHUNK):
         logits = upsample(low[start:start + DENSE_CHUNK], rows, cols)
         scores.append(stability_scores(logits, offset))
-        masks.append(logits[scores[-1] >= stability] > 0)
-    if not scores:
-        return low.new_empty(0), torch.empty(0, len(rows.first), len(cols.first), dtype=torch.bool, device=low.device)
-    return torch.cat(scores), torch.cat(masks)
+        stable = scores[-1] >= stability
+        above = logits > 0
+        masks.append(above if bool(stable.all()) else above[stable])            # bools, not logits, copied
+    return (torch.cat(scores) if scores else low.new_empty(0)), masks
 
 
 def stable_masks(low: torch.Tensor, rows: Taps, cols: Taps, offset: float,
@@ -288,6 +288,9 @@ def stable_masks(low: torch.Tensor, rows: Taps, cols: Taps, offset: float,
     keep = scores >= stability
     masks = torch.empty(int(keep.sum()), len(rows.first), len(cols.first), dtype=torch.bool, device=low.device)
     rank = keep.cumsum(0) - 1
-    masks[rank[keep & dense]] = dense_masks
+    at = rank[keep & dense]
+    for part in dense_masks:                                                         # each chunk's, in order
+        masks[at[:len(part)]] = part
+        at = at[len(part):]
     masks[rank[keep & ~dense]] = _painted(bottom > margin, exact, keep[~dense], rows, cols)
     return index[keep], masks, scores[keep]
