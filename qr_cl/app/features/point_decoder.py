@@ -390,22 +390,28 @@ class PointDecoder:
         norm = dec.output_upscaling[1]
         b = len(tokens.hs)
 
-        def window(x: torch.Tensor) -> torch.Tensor:                                 # [B, N, k] -> its window
-            return x.unflatten(1, (g, g))[:, :rows, :cols].flatten(1, 2)
+        def window(x: torch.Tensor) -> torch.Tensor:                                 # [B, k, N] -> [B, k, rows, cols]
+            return x.unflatten(2, (g, g))[:, :, :rows, :cols]
 
         first, second = tokens.first, tokens.second
         with torch.no_grad():
             mlps = dec.output_hypernetworks_mlps
             hyper = torch.stack([mlps[i](tokens.hs[:, 1 + k]) for k, i in enumerate(MULTIMASK)], 1)  # [B, 3, 32]
-            rstd2 = window(second.rstd)
-            rstd12 = window(first.rstd) * rstd2
-            coeffs = torch.cat([window(first.weights.transpose(1, 2)) * rstd12, -window(first.mean) * rstd12,
-                                window(second.weights.transpose(1, 2)) * rstd2, -window(second.mean) * rstd2,
-                                rstd2], -1)                                                # [B, n, 115]
+            rstd2 = window(second.rstd.transpose(1, 2))
+            rstd12 = window(first.rstd.transpose(1, 2)) * rstd2
+            heads = first.weights.shape[1]                                            # 8*7
+            coeffs = rstd2.new_empty(b, 2 * heads + 3, rows, cols)                    # per token, token-minor
+            a1, mean1, a2, mean2, bias1 = coeffs.split([heads, 1, heads, 1, 1], 1)
+            torch.mul(window(first.weights), rstd12, out=a1)
+            torch.mul(window(first.mean.transpose(1, 2)), rstd12, out=mean1).neg_()
+            torch.mul(window(second.weights), rstd2, out=a2)
+            torch.mul(window(second.mean.transpose(1, 2)), rstd2, out=mean2).neg_()
+            bias1.copy_(rstd2)
+            coeffs, rstd12 = coeffs.flatten(2), rstd12.flatten(2).transpose(1, 2)     # [B, 115, n], [B, n, 1]
             values = torch.cat([first.values @ self.conv_w1, self.conv_w1.sum(0).expand(b, 1, -1),
                                 second.values @ self.conv_w2, self.conv_w2.sum(0).expand(b, 1, -1),
                                 self.conv_b1.expand(b, 1, -1)], 1)
-            keys = window(self.keys_conv)
+            keys = self.keys_conv.unflatten(1, (g, g))[:, :rows, :cols].flatten(1, 2)
             out = keys.new_empty(b, len(MULTIMASK), UPSCALE * rows, UPSCALE * cols)
             logits = out.view(b * len(MULTIMASK), -1)                                # each mask's, row by row
             step = max(1, TOKEN_TILE // (b * cols))                                   # token rows a tile
@@ -418,7 +424,7 @@ class PointDecoder:
                 n = part.stop - part.start
                 up = buffer1[:b * n * width1].view(b, n, -1)
                 up = torch.addcmul(self.conv_b2, keys[:, part], rstd12[:, part], out=up)
-                up = up.baddbmm_(coeffs[:, part], values)                               # [B, tile, 4*64]
+                up = up.baddbmm_(coeffs[:, :, part].transpose(1, 2), values)            # [B, tile, 4*64]
                 up = _gelu_(F.layer_norm(up.view(b, n * 4, -1), (width1 // 4,), norm.weight, norm.bias, norm.eps))
                 up = torch.matmul(up, self.up2_w, out=buffer2[:b * n * 4 * width2].view(b, n * 4, -1))
                 up = _gelu_(up.add_(self.up2_b)).view(b, n * 16, -1)                    # [B, tile*4*4, 32]
