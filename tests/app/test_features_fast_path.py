@@ -108,13 +108,16 @@ def _drawn_image(height: int = 60, width: int = 80) -> np.ndarray:
     return img
 
 
-@pytest.mark.parametrize("seed,iou_bias,sharpen,nms,masks", [(2, 1.0, 1000.0, 0.95, 8), (3, 0.7, 20.0, 0.7, 3)])
-def test_frame_features_equal_todays_path(seed, iou_bias, sharpen, nms, masks, monkeypatch):
-    """LangSplat's whole frame (crops, levels, filters, CLIP) by the fast path and today's path;
-    the fast path encodes each distinct mask once."""
+@pytest.mark.parametrize("seed,iou_bias,sharpen,nms,masks,batch", [(2, 1.0, 1000.0, 0.95, 8, 64), (3, 0.7, 20.0, 0.7, 3, 64),
+                                                                  (2, 1.0, 1000.0, 0.95, 8, 7)])
+def test_frame_features_equal_todays_path(seed, iou_bias, sharpen, nms, masks, batch, monkeypatch):
+    """LangSplat's whole frame (crops, levels, filters, CLIP) by the fast path and today's path,
+    the 36 prompts of a crop in one batch or in six (masks kept from several batches); the fast
+    path encodes each distinct mask once."""
     sam, clip = _sam_with(iou_bias, sharpen, seed), random_clip(tiny_clip_arch(600), seed=1)
     image = _drawn_image()
-    settings = MaskSettings(points_per_side=6, crop_layers=1, min_area=20, box_nms=nms, crop_nms=nms)
+    settings = MaskSettings(points_per_side=6, points_per_batch=batch, crop_layers=1, min_area=20, box_nms=nms,
+                            crop_nms=nms)
     ref = reference_frame(sam, clip, image, settings)
     encoded = []
     monkeypatch.setattr(frames, "encode_crops", lambda c, crops, b: encoded.append(len(crops)) or encode_crops(c, crops, b))
