@@ -156,7 +156,8 @@ def stability_bound(low: torch.Tensor, rows: Taps, cols: Taps, offset: float) ->
 def stability_scores(logits: torch.Tensor, offset: float) -> torch.Tensor:
     """[n] pixels above +offset over pixels above -offset of ``logits`` [n, H, W] (counted as bytes
     in int32, faster than bools or int64, the same float32 quotient)."""
-    above, floor = ((logits > t).flatten(1).view(torch.uint8).sum(1, dtype=torch.int32) for t in (offset, -offset))
+    flat = logits.flatten(1)
+    above, floor = ((flat > t).view(torch.uint8).sum(1, dtype=torch.int32) for t in (offset, -offset))
     return above / floor
 
 

@@ -30,10 +30,10 @@ cross-attentions of 8 heads of width d = 16:
   with their coefficients times ``rstd2``) instead of [N, C] x [C, 256].
 - The second convolution is per pixel too ([64] -> [2*2*32] channels last); the hypernetwork
   reads its 32 channels per output pixel as a [3, 32] x [32, pixels] product per prompt, and each
-  tile's masks are gathered from that sub-pixel order into the output's (:func:`_grid_order`). Only the three multimask outputs are decoded
-  (the single-mask output is never used; the last attention runs for the four output tokens that
-  are read), only for the token rows and columns the caller's crop reads, and only for the
-  prompts asked for.
+  tile's masks are gathered from that sub-pixel order into the output's (:func:`_grid_order`).
+  Only the three multimask outputs are decoded (the single-mask output is never used; the last
+  attention runs for the four output tokens that are read), only for the token rows and columns
+  the caller's crop reads, and only for the prompts asked for.
 """
 from __future__ import annotations
 
@@ -399,9 +399,9 @@ class PointDecoder:
             hyper = torch.stack([mlps[i](tokens.hs[:, 1 + k]) for k, i in enumerate(MULTIMASK)], 1)  # [B, 3, 32]
             rstd2 = window(second.rstd.transpose(1, 2))
             rstd12 = window(first.rstd.transpose(1, 2)) * rstd2
-            heads = first.weights.shape[1]                                            # 8*7
-            coeffs = rstd2.new_empty(b, 2 * heads + 3, rows, cols)                    # per token, token-minor
-            a1, mean1, a2, mean2, bias1 = coeffs.split([heads, 1, heads, 1, 1], 1)
+            rank = first.weights.shape[1]                                             # an update's 8*7 terms
+            coeffs = rstd2.new_empty(b, 2 * rank + 3, rows, cols)                     # per token, token-minor
+            a1, mean1, a2, mean2, bias1 = coeffs.split([rank, 1, rank, 1, 1], 1)
             torch.mul(window(first.weights), rstd12, out=a1)
             torch.mul(window(first.mean.transpose(1, 2)), rstd12, out=mean1).neg_()
             torch.mul(window(second.weights), rstd2, out=a2)
