@@ -255,9 +255,7 @@ def _dense_scores_and_masks(low: torch.Tensor, rows: Taps, cols: Taps, offset: f
     for start in range(0, len(low), DENSE_CHUNK):
         logits = upsample(low[start:start + DENSE_CHUNK], rows, cols)
         scores.append(stability_scores(logits, offset))
-        stable = scores[-1] >= stability
-        above = logits > 0
-        masks.append(above if bool(stable.all()) else above[stable])            # bools, not logits, copied
+        masks.append((logits > 0)[scores[-1] >= stability])                   # bools, not logits, picked
     return (torch.cat(scores) if scores else low.new_empty(0)), masks
 
 

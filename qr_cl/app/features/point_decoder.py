@@ -419,6 +419,7 @@ class PointDecoder:
             buffer1 = keys.new_empty(b * step * cols * width1)                        # reused by every tile:
             buffer2 = keys.new_empty(b * step * cols * 4 * width2)                    # no fresh pages
             buffer3 = keys.new_empty(b * len(MULTIMASK) * step * cols * UPSCALE ** 2)
+            order = _grid_order(step, cols, keys.device)                              # a shorter tile's: a prefix
             for i in range(0, rows, step):                                            # tiles stay in cache
                 part = slice(i * cols, min(i + step, rows) * cols)
                 n = part.stop - part.start
@@ -429,7 +430,6 @@ class PointDecoder:
                 up = torch.matmul(up, self.up2_w, out=buffer2[:b * n * 4 * width2].view(b, n * 4, -1))
                 up = _gelu_(up.add_(self.up2_b)).view(b, n * 16, -1)                    # [B, tile*4*4, 32]
                 low = (hyper @ up.transpose(1, 2)).view(b * len(MULTIMASK), -1)       # [B*3, tile*16]
-                tile = torch.index_select(low, 1, _grid_order(n // cols, cols, low.device),
-                                          out=buffer3[:low.numel()].view(low.shape))
+                tile = torch.index_select(low, 1, order[:low.shape[1]], out=buffer3[:low.numel()].view(low.shape))
                 logits[:, i * cols * UPSCALE ** 2:part.stop * UPSCALE ** 2].copy_(tile)
         return out
